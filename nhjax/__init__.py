@@ -1,0 +1,21 @@
+"""nhjax: energy- and constraint-preserving integrators for nonholonomic systems.
+
+x64 is not switched on here: call `jax.config.update("jax_enable_x64", True)` (or set
+`JAX_ENABLE_X64=1`) before creating arrays to get float64, the normal mode for energy
+conservation to roundoff. float32 works too, with tolerances that follow the dtype.
+"""
+
+from . import examples as examples
+from ._discrete_gradient import avf as avf, gonzalez as gonzalez, itoh_abe as itoh_abe
+from ._integrate import integrate as integrate, Solution as Solution
+from ._results import RESULTS as RESULTS
+from ._solver import (
+    AbstractMethod as AbstractMethod,
+    averaged_structure as averaged_structure,
+    DiscreteGradient as DiscreteGradient,
+    midpoint_structure as midpoint_structure,
+)
+from ._system import AbstractSystem as AbstractSystem, SkewGradientSystem as SkewGradientSystem
+
+
+__version__ = "0.1.0"

@@ -1,0 +1,54 @@
+"""Result codes of `nhjax.integrate`: diffrax's, plus the checks nhjax makes itself."""
+
+import diffrax
+
+
+class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    """Per-trajectory outcome of [`nhjax.integrate`][]. Under `jax.vmap` each trajectory
+    has its own code; `nhjax.RESULTS[code]` is its message."""
+
+    nonfinite_initial_state = "The initial state contains NaN or inf."
+    nonpositive_dt = "The step size dt must be positive."
+    structure_not_skew = (
+        "structure(x, args) is not skew-symmetric at the initial state, so the flow "
+        "would not conserve the Hamiltonian."
+    )
+    root_find_not_converged = (
+        "The implicit equations of a step were not solved to tolerance within the "
+        "method's `root_find_max_steps` iterations (or the iteration diverged). Try a "
+        "smaller dt, or a larger `root_find_max_steps`. The saved states from the "
+        "failed step on are not finite."
+    )
+    root_find_singular = (
+        "The Jacobian of a step's implicit equations was singular. Try a smaller dt. "
+        "The saved states from the failed step on are not finite."
+    )
+    nonfinite_step = (
+        "A step produced a non-finite state (NaN or inf): the solution blew up or the "
+        "system's functions returned NaN. The saved states from that step on are not "
+        "finite."
+    )
+
+
+_TRANSLATED = (
+    (diffrax.RESULTS.nonlinear_max_steps_reached, RESULTS.root_find_not_converged),
+    (diffrax.RESULTS.nonlinear_divergence, RESULTS.root_find_not_converged),
+    (diffrax.RESULTS.singular, RESULTS.root_find_singular),
+    (diffrax.RESULTS.nonfinite, RESULTS.nonfinite_step),
+)
+
+
+def from_diffrax(result: diffrax.RESULTS) -> RESULTS:
+    """diffrax's code as an nhjax code, root-find failures named in nhjax's words."""
+    translated = RESULTS.promote(result)
+    for theirs, ours in _TRANSLATED:
+        translated = RESULTS.where(result == theirs, ours, translated)
+    return translated
+
+
+def first_failure(*results: RESULTS) -> RESULTS:
+    """The first of `results` that is not successful (or success if none)."""
+    out = RESULTS.successful
+    for result in reversed(results):
+        out = RESULTS.where(result == RESULTS.successful, out, result)
+    return out

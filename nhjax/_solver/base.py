@@ -1,0 +1,94 @@
+"""What every nhjax method shares: an optimistix root find per step, with tolerances
+that follow the dtype, per-step result codes, and root-finder statistics carried in the
+diffrax solver state."""
+
+from typing import Any, ClassVar
+
+import diffrax
+import equinox as eqx
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Int
+
+from .._system import AbstractSystem
+
+
+class RootFindStats(eqx.Module):
+    """The diffrax solver state of an nhjax method: root-finder iterations so far."""
+
+    total_steps: Int[Array, ""]
+    max_steps: Int[Array, ""]
+
+    def record(self, steps: Int[Array, ""]) -> "RootFindStats":
+        return RootFindStats(self.total_steps + steps, jnp.maximum(self.max_steps, steps))
+
+
+def default_root_finder(dtype) -> optx.AbstractRootFinder:
+    """Newton's method to a few ulps of the dtype.
+
+    Every nhjax method poses its root find in scaled unknowns of size O(1) (an increment
+    divided by `1 + max|state|`), so one absolute tolerance serves every system. Newton
+    stops when both the last correction and the residual are below it, and returns the
+    corrected iterate, whose error is then the square of that: roundoff.
+    """
+    return optx.Newton(rtol=0.0, atol=64 * float(jnp.finfo(dtype).eps))
+
+
+class AbstractMethod(diffrax.AbstractSolver):
+    """A one-step method whose step is a root find.
+
+    Subclasses set `root_finder` (`None`: `default_root_finder` for the state's dtype)
+    and `root_find_max_steps`. Their `step` calls `solve` and `finish`.
+    """
+
+    interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
+
+    root_finder: eqx.AbstractVar[optx.AbstractRootFinder | None]
+    root_find_max_steps: eqx.AbstractVar[int]
+
+    def init(self, terms, t0, t1, y0, args) -> RootFindStats:
+        del terms, t0, t1, y0, args
+        zero = jnp.array(0, dtype=jnp.int32)
+        return RootFindStats(zero, zero)
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    @staticmethod
+    def system_and_step(terms, t0, t1):
+        """The user's system inside diffrax's wrappers, and the signed step size (diffrax
+        integrates backward in time by negating times inside a wrapper)."""
+        system = terms
+        while not isinstance(system, AbstractSystem):
+            system = system.term
+        return system, terms.contr(t0, t1)
+
+    def solve(self, residual, guess, args: Any):
+        """Root of `residual(unknowns, args)` from `guess`: (value, diffrax result, steps)."""
+        root_finder = self.root_finder
+        if root_finder is None:
+            root_finder = default_root_finder(jnp.result_type(guess))
+        solution = optx.root_find(
+            residual,
+            root_finder,
+            guess,
+            args,
+            max_steps=self.root_find_max_steps,
+            throw=False,
+        )
+        result = diffrax.RESULTS.promote(solution.result)
+        return solution.value, result, solution.stats["num_steps"]
+
+    @staticmethod
+    def finish(y0, y1, result, steps, solver_state: RootFindStats):
+        """The step's return tuple. A failed or non-finite step returns NaN, never a
+        plausible-looking state, together with its result code."""
+        finite = jnp.all(jnp.isfinite(y1))
+        result = diffrax.RESULTS.where(
+            (result == diffrax.RESULTS.successful) & ~finite,
+            diffrax.RESULTS.nonfinite,
+            result,
+        )
+        y1 = jnp.where(result == diffrax.RESULTS.successful, y1, jnp.nan)
+        dense_info = dict(y0=y0, y1=y1)
+        return y1, None, dense_info, solver_state.record(steps), result

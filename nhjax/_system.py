@@ -1,0 +1,114 @@
+r"""What is simulated: systems as diffrax terms built from pure JAX functions.
+
+A system knows its equations, its energy and how to validate an initial state. It says
+nothing about how a step is taken (the methods, `nhjax._solver`) or how steps are strung
+together (`nhjax.integrate`). Systems are `diffrax.AbstractTerm`s whose `vf` is the
+continuous vector field, so any diffrax solver can also integrate them directly.
+"""
+
+import abc
+from collections.abc import Callable
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._results import RESULTS
+
+
+class AbstractSystem(diffrax.AbstractTerm):
+    """A conservative system: a diffrax term with an energy and an initial-state check."""
+
+    @abc.abstractmethod
+    def energy(self, y, args: Any) -> Float[Array, ""]:
+        """The conserved energy at the state `y`."""
+
+    @abc.abstractmethod
+    def check_shapes(self, y0, args: Any) -> None:
+        """Raise a `ValueError` naming the problem if `y0` or the user's functions have
+        the wrong shapes or dtypes. Runs at trace time: costs nothing at run time."""
+
+    @abc.abstractmethod
+    def initial_state_result(self, y0, args: Any) -> RESULTS:
+        """`RESULTS.successful`, or the code saying why `y0` cannot be integrated."""
+
+    def observables(self, y, args: Any) -> dict[str, Array]:
+        """What `nhjax.integrate` records beside the state at each save."""
+        return {"energy": self.energy(y, args)}
+
+    def contr(self, t0, t1, **kwargs):
+        del kwargs
+        return t1 - t0
+
+    def prod(self, vf, control):
+        return jax.tree.map(lambda v: v * control, vf)
+
+
+def _require_floating_vector(name: str, x) -> None:
+    if not (eqx.is_array(x) or hasattr(x, "shape")) or jnp.ndim(x) != 1:
+        raise ValueError(
+            f"{name} must be a 1-D array, got shape {jnp.shape(x)} "
+            f"({type(x).__name__})."
+        )
+    if not jnp.issubdtype(jnp.result_type(x), jnp.floating):
+        raise ValueError(f"{name} must be floating point, got dtype {jnp.result_type(x)}.")
+
+
+def _require_scalar(name: str, struct) -> None:
+    if getattr(struct, "shape", None) != ():
+        raise ValueError(
+            f"{name} must return a scalar, got {getattr(struct, 'shape', struct)}."
+        )
+
+
+class SkewGradientSystem(AbstractSystem):
+    r"""The skew-gradient system $\dot x = \Pi(x) \nabla H(x)$ of eq. (dynamical).
+
+    **Arguments:**
+
+    - `hamiltonian`: `hamiltonian(x, args) -> scalar`, the first integral $H$.
+    - `structure`: `structure(x, args) -> (N, N)` skew-symmetric matrix $\Pi(x)$.
+
+    The state is a flat array `x` of shape `(N,)`. $\nabla H$ comes from autodiff.
+    Skew-symmetry of $\Pi$ is what makes $H$ conserved; it is checked at the initial
+    state (to `100 eps (1 + max|Pi|)`) by `nhjax.integrate`.
+    """
+
+    hamiltonian: Callable[[Float[Array, " N"], Any], Float[Array, ""]]
+    structure: Callable[[Float[Array, " N"], Any], Float[Array, "N N"]]
+
+    def gradient(self, x: Float[Array, " N"], args: Any) -> Float[Array, " N"]:
+        return jax.grad(self.hamiltonian)(x, args)
+
+    def vf(self, t, y, args):
+        del t
+        return self.structure(y, args) @ self.gradient(y, args)
+
+    def energy(self, y, args):
+        return self.hamiltonian(y, args)
+
+    def check_shapes(self, y0, args):
+        _require_floating_vector("The state of a SkewGradientSystem", y0)
+        (n,) = jnp.shape(y0)
+        _require_scalar("hamiltonian(x, args)", jax.eval_shape(self.hamiltonian, y0, args))
+        structure = jax.eval_shape(self.structure, y0, args)
+        if structure.shape != (n, n):
+            raise ValueError(
+                f"structure(x, args) must return an ({n}, {n}) matrix for a state of "
+                f"shape ({n},), got shape {structure.shape}."
+            )
+
+    def initial_state_result(self, y0, args):
+        structure = self.structure(y0, args)
+        asymmetry = jnp.max(jnp.abs(structure + structure.T))
+        tolerance = 100 * jnp.finfo(structure.dtype).eps * (1 + jnp.max(jnp.abs(structure)))
+        return RESULTS.where(
+            jnp.all(jnp.isfinite(y0)),
+            RESULTS.where(
+                asymmetry <= tolerance, RESULTS.successful, RESULTS.structure_not_skew
+            ),
+            RESULTS.nonfinite_initial_state,
+        )

@@ -1,0 +1,9 @@
+"""The paper's systems: each example bundles its parameters (`.args`), its reduced
+equations in adapted coordinates (`.adapted`, a `SkewGradientSystem`), its constraint
+matrix and frame, maps between (q, p) and adapted coordinates, and initial-state
+helpers."""
+
+from ._chaotic_quartic import chaotic_quartic as chaotic_quartic, ChaoticQuartic as ChaoticQuartic
+from ._chaplygin_sleigh import chaplygin_sleigh as chaplygin_sleigh, ChaplyginSleigh as ChaplyginSleigh
+from ._rolling_disk import rolling_disk as rolling_disk, RollingDisk as RollingDisk
+from ._suslov import suslov as suslov, Suslov as Suslov

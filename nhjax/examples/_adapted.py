@@ -1,0 +1,30 @@
+r"""Pieces shared by the paper's systems in adapted coordinates (§2.2).
+
+With a frame $X(q) = (X_1, \dots, X_m)$ of $\mathcal{D}_q$ (columns, $n \times m$) and the
+metric $g(q)$, the momenta on $\mathcal{D}^*$ are $\rho = X^T p$ (ptildetop) and, for
+$p$ on $\mathcal{F}L(\mathcal{D})$, $p = g X (X^T g X)^{-1} \rho$ (ptoptilde).
+"""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+def adapted_structure(
+    frame: Float[Array, "n m"], bracket: Float[Array, "m m"]
+) -> Float[Array, "n+m n+m"]:
+    r"""$\Pi(q, \rho) = \begin{pmatrix} 0 & X \\ -X^T & -C^c_{ab}\rho_c \end{pmatrix}$,
+    eq. (PiMat), from the frame $X$ and the skew block $-C^c_{ab}\rho_c$."""
+    n = frame.shape[0]
+    top = jnp.concatenate([jnp.zeros((n, n), frame.dtype), frame], axis=1)
+    bottom = jnp.concatenate([-frame.T, bracket], axis=1)
+    return jnp.concatenate([top, bottom], axis=0)
+
+
+def momentum_to_adapted(frame, p):
+    """rho = X^T p, eq. (ptildetop)."""
+    return frame.T @ p
+
+
+def adapted_to_momentum(frame, metric, rho):
+    """p = g X (X^T g X)^{-1} rho, eq. (ptoptilde)."""
+    return metric @ frame @ jnp.linalg.solve(frame.T @ metric @ frame, rho)

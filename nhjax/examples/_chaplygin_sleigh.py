@@ -1,0 +1,122 @@
+r"""The Chaplygin sleigh of §4.2: a rigid body on the plane with a knife edge.
+
+$q = (x_1, x_2, \theta)$, kinetic energy with the metric
+$\begin{pmatrix} m & 0 & -ma\sin\theta \\ 0 & m & ma\cos\theta \\
+-ma\sin\theta & ma\cos\theta & J + ma^2 \end{pmatrix}$, constraint
+$-\dot x_1\sin\theta + \dot x_2\cos\theta = 0$. Orthonormal frame of $\mathcal{D}$:
+$X_1 = \partial_\theta/\sqrt{J + ma^2}$,
+$X_2 = (\cos\theta\,\partial_{x_1} + \sin\theta\,\partial_{x_2})/\sqrt{m}$. Adapted state
+$(x_1, x_2, \theta, \rho_1, \rho_2)$, $\mathcal{H} = \tfrac12(\rho_1^2 + \rho_2^2)$ and the
+structure $\Pi(\theta, \rho_1)$ printed in §4.2, with $C^1_{12} = a\sqrt{m}/(J + ma^2)$.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._system import SkewGradientSystem
+from ._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+
+
+def _rotational_inertia(args):
+    return args["J"] + args["m"] * args["a"] ** 2
+
+
+def bracket_coefficient(args):
+    r"""$C^1_{12} = a\sqrt{m}/(J + ma^2)$, so that $\dot\rho_1 = -C^1_{12}\rho_1\rho_2$,
+    $\dot\rho_2 = C^1_{12}\rho_1^2$ (mom-eq)."""
+    return args["a"] * jnp.sqrt(args["m"]) / _rotational_inertia(args)
+
+
+def _frame(q, args):
+    theta = q[2]
+    zero = jnp.zeros_like(theta)
+    inv_sqrt_m = 1 / jnp.sqrt(args["m"])
+    return jnp.array(
+        [
+            [zero, jnp.cos(theta) * inv_sqrt_m],
+            [zero, jnp.sin(theta) * inv_sqrt_m],
+            [1 / jnp.sqrt(_rotational_inertia(args)) + zero, zero],
+        ]
+    )
+
+
+def _metric(q, args):
+    theta, m, a = q[2], args["m"], args["a"]
+    zero = jnp.zeros_like(theta)
+    return jnp.array(
+        [
+            [m + zero, zero, -m * a * jnp.sin(theta)],
+            [zero, m + zero, m * a * jnp.cos(theta)],
+            [-m * a * jnp.sin(theta), m * a * jnp.cos(theta), _rotational_inertia(args) + zero],
+        ]
+    )
+
+
+def _hamiltonian(x, args):
+    del args
+    return 0.5 * (x[3] ** 2 + x[4] ** 2)
+
+
+def _structure(x, args):
+    c = bracket_coefficient(args) * x[3]
+    zero = jnp.zeros_like(c)
+    bracket = jnp.array([[zero, -c], [c, zero]])
+    return adapted_structure(_frame(x[:3], args), bracket)
+
+
+def _constraints(q, args):
+    del args
+    theta = q[2]
+    return jnp.stack([-jnp.sin(theta), jnp.cos(theta), jnp.zeros_like(theta)])[None, :]
+
+
+class ChaplyginSleigh(eqx.Module):
+    """The Chaplygin sleigh with moment of inertia `J` about the centre of mass, mass
+    `m`, and distance `a` from the blade's contact point to the centre of mass.
+    `args` holds the parameters for the system's functions."""
+
+    J: float = 8.0
+    a: float = 1.0
+    m: float = 1.0
+
+    @property
+    def args(self) -> dict[str, float]:
+        return dict(J=self.J, a=self.a, m=self.m)
+
+    @property
+    def adapted(self) -> SkewGradientSystem:
+        """The reduced equations (dynamical) in $(x_1, x_2, \\theta, \\rho_1, \\rho_2)$."""
+        return SkewGradientSystem(_hamiltonian, _structure)
+
+    @staticmethod
+    def constraints(q: Float[Array, "3"], args) -> Float[Array, "1 3"]:
+        return _constraints(q, args)
+
+    @staticmethod
+    def frame(q: Float[Array, "3"], args) -> Float[Array, "3 2"]:
+        return _frame(q, args)
+
+    @staticmethod
+    def metric(q: Float[Array, "3"], args) -> Float[Array, "3 3"]:
+        return _metric(q, args)
+
+    def initial_state(
+        self, x1=-5.0, x2=0.0, theta=0.1, rho1=0.001, rho2=-0.6, dtype=None
+    ) -> Float[Array, "5"]:
+        """Defaults: Figure 2's start, next to the unstable equilibrium."""
+        return jnp.asarray([x1, x2, theta, rho1, rho2], dtype=dtype)
+
+    def to_adapted(self, q, p, args=None) -> Float[Array, "5"]:
+        args = self.args if args is None else args
+        return jnp.concatenate([q, momentum_to_adapted(_frame(q, args), p)])
+
+    def from_adapted(self, x, args=None) -> tuple[Array, Array]:
+        args = self.args if args is None else args
+        q = x[:3]
+        return q, adapted_to_momentum(_frame(q, args), _metric(q, args), x[3:])
+
+
+def chaplygin_sleigh(J=8.0, a=1.0, m=1.0) -> ChaplyginSleigh:
+    """The Chaplygin sleigh of §4.2 (see `ChaplyginSleigh`)."""
+    return ChaplyginSleigh(J=J, a=a, m=m)

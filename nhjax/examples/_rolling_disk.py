@@ -1,0 +1,124 @@
+r"""The rolling disk (unicycle) of §2: an upright disk rolling without slipping.
+
+$q = (x_1, x_2, \theta, \phi)$, metric $g = \mathrm{diag}(m, m, J_\theta, J_\phi)$, $V = 0$,
+constraints (diskConst) $\dot x_1 - r\dot\phi\cos\theta = 0$,
+$\dot x_2 - r\dot\phi\sin\theta = 0$. Frame of $\mathcal{D}$:
+$X_1 = r\cos\theta\,\partial_{x_1} + r\sin\theta\,\partial_{x_2} + \partial_\phi$,
+$X_2 = \partial_\theta$; all $C^c_{ab} = 0$. Adapted state
+$(x_1, x_2, \theta, \phi, \rho_1, \rho_2)$ with
+$\mathcal{H} = \tfrac12[\rho_1^2/(mr^2 + J_\phi) + \rho_2^2/J_\theta]$.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, ArrayLike
+
+from .._system import SkewGradientSystem
+from ._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+
+
+def _frame(q, args):
+    theta, r = q[2], args["r"]
+    zero, one = jnp.zeros_like(theta), jnp.ones_like(theta)
+    return jnp.array(
+        [[r * jnp.cos(theta), zero], [r * jnp.sin(theta), zero], [zero, one], [one, zero]]
+    )
+
+
+def _metric(q, args):
+    del q
+    return jnp.diag(jnp.stack([args["m"], args["m"], args["J_theta"], args["J_phi"]]))
+
+
+def _hamiltonian(x, args):
+    rho = x[4:]
+    rolling_inertia = args["m"] * args["r"] ** 2 + args["J_phi"]
+    return 0.5 * (rho[0] ** 2 / rolling_inertia + rho[1] ** 2 / args["J_theta"])
+
+
+def _structure(x, args):
+    frame = _frame(x[:4], args)
+    return adapted_structure(frame, jnp.zeros((2, 2), frame.dtype))
+
+
+def _constraints(q, args):
+    theta, r = q[2], args["r"]
+    zero, one = jnp.zeros_like(theta), jnp.ones_like(theta)
+    return jnp.array(
+        [[one, zero, zero, -r * jnp.cos(theta)], [zero, one, zero, -r * jnp.sin(theta)]]
+    )
+
+
+class RollingDisk(eqx.Module):
+    """The rolling disk with mass `m`, radius `r` and moments of inertia `J_theta`
+    (about the vertical axis) and `J_phi` (about the axle). Defaults: a uniform disk of
+    unit mass and radius. `args` holds the parameters for the system's functions."""
+
+    m: float = 1.0
+    r: float = 1.0
+    J_theta: float = 0.25
+    J_phi: float = 0.5
+
+    @property
+    def args(self) -> dict[str, float]:
+        return dict(m=self.m, r=self.r, J_theta=self.J_theta, J_phi=self.J_phi)
+
+    @property
+    def adapted(self) -> SkewGradientSystem:
+        """The reduced equations (dynamical) in $(q, \\rho)$."""
+        return SkewGradientSystem(_hamiltonian, _structure)
+
+    @staticmethod
+    def constraints(q: Float[Array, "4"], args) -> Float[Array, "2 4"]:
+        """The constraint matrix A(q) of (diskConst): A(q) qdot = 0."""
+        return _constraints(q, args)
+
+    @staticmethod
+    def frame(q: Float[Array, "4"], args) -> Float[Array, "4 2"]:
+        return _frame(q, args)
+
+    @staticmethod
+    def metric(q: Float[Array, "4"], args) -> Float[Array, "4 4"]:
+        return _metric(q, args)
+
+    def initial_state(
+        self, x1=0.0, x2=0.0, theta=0.0, phi=0.0, rho1=1.0, rho2=0.5, dtype=None
+    ) -> Float[Array, "6"]:
+        return jnp.asarray([x1, x2, theta, phi, rho1, rho2], dtype=dtype)
+
+    def to_adapted(self, q, p, args=None) -> Float[Array, "6"]:
+        args = self.args if args is None else args
+        return jnp.concatenate([q, momentum_to_adapted(_frame(q, args), p)])
+
+    def from_adapted(self, x, args=None) -> tuple[Array, Array]:
+        args = self.args if args is None else args
+        q = x[:4]
+        return q, adapted_to_momentum(_frame(q, args), _metric(q, args), x[4:])
+
+    def exact_solution(self, t: ArrayLike, x0: Float[Array, "6"], args=None):
+        r"""The exact flow: $\rho$ constant, $\theta$ and $\phi$ linear in $t$,
+        $x_1 = x_1(0) + \tfrac{r\omega_\phi}{\omega_\theta}(\sin\theta - \sin\theta_0)$,
+        $x_2 = x_2(0) - \tfrac{r\omega_\phi}{\omega_\theta}(\cos\theta - \cos\theta_0)$,
+        $\omega_\phi = \rho_1/(mr^2 + J_\phi)$, $\omega_\theta = \rho_2/J_\theta \ne 0$."""
+        args = self.args if args is None else args
+        x1, x2, theta0, phi0, rho1, rho2 = x0
+        omega_phi = rho1 / (args["m"] * args["r"] ** 2 + args["J_phi"])
+        omega_theta = rho2 / args["J_theta"]
+        theta = theta0 + omega_theta * t
+        radius = args["r"] * omega_phi / omega_theta
+        return jnp.stack(
+            [
+                x1 + radius * (jnp.sin(theta) - jnp.sin(theta0)),
+                x2 - radius * (jnp.cos(theta) - jnp.cos(theta0)),
+                theta,
+                phi0 + omega_phi * t,
+                rho1 + 0 * t,
+                rho2 + 0 * t,
+            ],
+            axis=-1,
+        )
+
+
+def rolling_disk(m=1.0, r=1.0, J_theta=0.25, J_phi=0.5) -> RollingDisk:
+    """The rolling disk of §2 (see `RollingDisk`)."""
+    return RollingDisk(m=m, r=r, J_theta=J_theta, J_phi=J_phi)
