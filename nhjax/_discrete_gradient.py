@@ -12,23 +12,22 @@ All three share one signature, `dg(f, x, x1, args) -> array shaped like x`, wher
 **Nearly equal points.** Gonzalez (gonzales) and Itoh--Abe (itoAbe) divide a
 difference of `f` by $|x' - x|$. Evaluated as printed, the rounding error of that
 difference, $\epsilon |f|$, is amplified by $1/|x' - x|$: at $|x' - x| = 10^{-10}$ the
-result has lost six digits, and at $x' = x$ it is $0/0$. Newton's first iterate and
-gradients flowing through the root find both sit in that regime. So when
-$|x' - x|_\infty < \tau (1 + |\tfrac{x + x'}{2}|_\infty)$, with
-$\tau = (4320\,\epsilon)^{1/5}$ ($\approx 4\cdot 10^{-3}$ in float64, $0.2$ in float32),
-the divided difference is replaced by its two-point Gauss--Legendre quadrature,
+result has lost six digits, and at $x' = x$ it is $0/0$. Newton's first iterates and
+gradients flowing through the root find both visit that regime. So below a switch
+$|x' - x|_\infty < \tau (1 + |\tfrac{x + x'}{2}|_\infty)$, where the truncation error
+of a local expansion, $\approx |f^{(5)}||\delta|^5/C$, falls below the rounding error
+$\epsilon|f|$ of the printed formula ($\tau = (C\epsilon)^{1/5}$, about $4\cdot10^{-3}$ in
+float64 and $0.2$ in float32), each uses a form free of cancellation:
 
-$$\frac{f(b + \tfrac{1}{2}\delta) - f(b - \tfrac{1}{2}\delta)}{|\delta|}
-  = \int_{-1/2}^{1/2} \nabla f(b + s\delta)\cdot\hat\delta \, ds
-  \approx \tfrac12 \big[\nabla f(b + \tfrac{\delta}{2\sqrt3})
-  + \nabla f(b - \tfrac{\delta}{2\sqrt3})\big]\cdot\hat\delta,$$
+- Itoh--Abe: the divided difference along coordinate $i$ is the two-point
+  Gauss--Legendre quadrature $\tfrac12[\partial_i f(b + \tfrac{\delta_i}{2\sqrt3}e_i)
+  + \partial_i f(b - \tfrac{\delta_i}{2\sqrt3}e_i)]$ about the segment midpoint $b$
+  ($C = 4320$): gradients only, no subtraction, no division.
+- Gonzalez: the correction term by its Taylor expansion (see `gonzalez`, $C = 1920$).
 
-which needs only gradients (no cancellation, no division by $|\delta|$, and first-order
-autodiff only) and is exact for $f$ of degree $\le 4$ along the segment. Its truncation
-error, $\approx |f^{(5)}| |\delta|^5 / 4320$, is below the rounding error of the printed
-formula at the switch, so (discGradEn) holds to roundoff on both sides of it, the value
-is continuous there to roundoff, and at $x' = x$ the formula gives $\nabla f(x)$ exactly
-with finite derivatives of every order.
+(discGradEn) then holds to roundoff on both sides of the switch, values are continuous
+across it to roundoff, and at $x' = x$ both give $\nabla f(x)$ exactly, with finite and
+accurate derivatives, forward and reverse.
 """
 
 import math
@@ -44,6 +43,9 @@ from jaxtyping import Array, Float
 ScalarFunction = Callable[[Float[Array, " N"], Any], Float[Array, ""]]
 
 _GAUSS2_OFFSET = 0.5 / math.sqrt(3.0)
+# Gonzalez's Taylor remainder is |f^(5)| |delta|^5 / 1920 (not / 4320): a slightly lower
+# switch, (1920 eps)^(1/5) instead of (4320 eps)^(1/5).
+_TAYLOR_SWITCH_FACTOR = (1920.0 / 4320.0) ** 0.2
 
 
 def _near_switch(dtype) -> float:
@@ -85,6 +87,19 @@ def avf(
     return weights @ grads
 
 
+def _third_directional_derivative(f, x, direction, args):
+    """$D^3 f(x)[u, u, u]$ by nested forward-mode autodiff."""
+    along = lambda y: jax.jvp(lambda z: f(z, args), (y,), (direction,))[1]  # noqa: E731
+    twice = lambda y: jax.jvp(along, (y,), (direction,))[1]  # noqa: E731
+    return jax.jvp(twice, (x,), (direction,))[1]
+
+
+def _safe_norm(v):
+    """|v| with derivative 0 (not NaN) at v = 0."""
+    square = v @ v
+    return jnp.where(square == 0, 0.0, jnp.sqrt(jnp.where(square == 0, 1.0, square)))
+
+
 def gonzalez(
     f: ScalarFunction,
     x: Float[Array, " N"],
@@ -98,25 +113,41 @@ def gonzalez(
       \qquad \bar x = \tfrac{x + x'}{2},\ \delta = x' - x.$$
 
     Symmetric in $(x, x')$, so with a symmetric $\tilde\Pi$ the method (E-int) is
-    second order. For nearly equal points the numerator is
-    $\int_{-1/2}^{1/2} (\nabla f(\bar x + s\delta) - \nabla f(\bar x))\cdot\delta\, ds$,
-    evaluated by two-point Gauss quadrature (see the module docstring).
+    second order.
+
+    **Nearly equal points.** The coefficient of $\delta$ is a quantity of size
+    $|\delta|$ obtained from differences of size $|\delta|$ (or $|f|$), so any formula
+    that forms it by subtraction carries an error $\epsilon/|\delta|$ in the
+    coefficient: harmless in the value, which multiplies it by $\delta$, but not in the
+    derivative, which contains the coefficient itself. Below the switch (module
+    docstring, here $\tau = (1920\epsilon)^{1/5}$) the correction is therefore its
+    Taylor expansion about $\bar x$,
+    $\tfrac{1}{24} D^3 f(\bar x)[\hat\delta, \hat\delta, \hat\delta]\, |\delta|\,\delta
+    + O(|\delta|^4)$, $\hat\delta = \delta/|\delta|$, computed by nested forward-mode
+    autodiff without any cancellation. Only the branch in use is evaluated
+    (`lax.cond`, except under `vmap`).
     """
     delta = x1 - x
     midpoint = 0.5 * (x + x1)
-    offset = _GAUSS2_OFFSET * delta
-    grads = jax.vmap(jax.grad(f), in_axes=(0, None))(
-        jnp.stack([midpoint, midpoint + offset, midpoint - offset]), args
+    grad_mid = jax.grad(f)(midpoint, args)
+    near = jnp.max(jnp.abs(delta)) < _TAYLOR_SWITCH_FACTOR * _near_switch(x.dtype) * (
+        1.0 + jnp.max(jnp.abs(midpoint))
     )
-    grad_mid = grads[0]
-    slope_mid = grad_mid @ delta
-    printed = f(x1, args) - f(x, args) - slope_mid
-    quadrature = 0.5 * (grads[1] + grads[2]) @ delta - slope_mid
-    near = jnp.all(_is_near(x, x1, delta))
-    numerator = jnp.where(near, quadrature, printed)
-    delta_sq = delta @ delta
-    safe_delta_sq = jnp.where(delta_sq == 0, 1.0, delta_sq)
-    return grad_mid + (numerator / safe_delta_sq) * delta
+
+    def printed(operands):
+        x, x1, delta, grad_mid = operands
+        numerator = f(x1, args) - f(x, args) - grad_mid @ delta
+        return (numerator / jnp.where(near, 1.0, delta @ delta)) * delta
+
+    def taylor(operands):
+        _, _, delta, _ = operands
+        length = _safe_norm(delta)
+        direction = delta / jnp.where(length == 0, 1.0, length)
+        third = _third_directional_derivative(f, midpoint, direction, args)
+        return (third * length / 24.0) * delta
+
+    correction = jax.lax.cond(near, taylor, printed, (x, x1, delta, grad_mid))
+    return grad_mid + correction
 
 
 def itoh_abe(

@@ -1,0 +1,161 @@
+"""Both defining conditions (discGradEn), (discGradCons), and accuracy of value and
+derivatives at nearly equal and equal points, on random polynomial and trigonometric H."""
+
+import functools
+import itertools
+
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+
+import nhjax as nh
+
+
+N = 3
+DISCRETE_GRADIENTS = [nh.avf, nh.gonzalez, nh.itoh_abe]
+SYMMETRIC = [nh.avf, nh.gonzalez]
+settings.register_profile("nhjax", max_examples=25, deadline=None, derandomize=True)
+settings.load_profile("nhjax")
+
+
+MONOMIALS = np.array([e for e in itertools.product(range(5), repeat=N) if sum(e) <= 4])
+TRIG_TERMS = 4
+
+
+def polynomial(x, coefficients):
+    """sum_k c_k x^e_k over all monomials of degree <= 4."""
+    powers = jnp.stack([jnp.ones_like(x), x, x * x, x * x * x, x * x * x * x], axis=1)
+    monomials = jnp.prod(powers[jnp.arange(N), MONOMIALS], axis=1)
+    return coefficients @ monomials
+
+
+def trigonometric(x, parameters):
+    amplitudes, frequencies, phases = parameters
+    return amplitudes @ jnp.sin(frequencies @ x + phases)
+
+
+unit = st.floats(-1.0, 1.0, allow_nan=False, width=64)
+vectors = st.lists(unit, min_size=N, max_size=N).map(np.array)
+
+
+def arrays(shape):
+    size = int(np.prod(shape))
+    return st.lists(unit, min_size=size, max_size=size).map(lambda v: jnp.array(v).reshape(shape))
+
+
+polynomials = st.tuples(
+    arrays((len(MONOMIALS),)),
+    st.lists(st.booleans(), min_size=len(MONOMIALS), max_size=len(MONOMIALS)),
+).map(lambda cm: (polynomial, cm[0] * jnp.array(cm[1])))
+trigonometrics = st.tuples(
+    arrays((TRIG_TERMS,)), arrays((TRIG_TERMS, N)), arrays((TRIG_TERMS,))
+).map(lambda p: (trigonometric, p))
+functions = st.one_of(polynomials, trigonometrics)
+
+
+@st.composite
+def point_pairs(draw):
+    """Points in [-0.5, 0.5]^N, at a random distance from 1 down to 1e-15."""
+    x = 0.5 * draw(vectors)
+    direction = draw(vectors)
+    distance = 10.0 ** -draw(st.floats(0.0, 15.0))
+    return jnp.array(x), jnp.array(x + distance * direction)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def evaluate(dg, f, x, x1, args):
+    """Everything the tests compare, compiled once per (dg, f)."""
+    return dict(
+        value=dg(f, x, x1, args),
+        reversed=dg(f, x1, x, args),
+        change=f(x1, args) - f(x, args),
+        scale=jnp.maximum(1.0, jnp.maximum(jnp.abs(f(x, args)), jnp.abs(f(x1, args)))),
+        grad_x=jax.grad(f)(x, args),
+        grad_mid=jax.grad(f)(0.5 * (x + x1), args),
+        hessian=jax.hessian(f)(x, args),
+        forward=jax.jacfwd(dg, argnums=2)(f, x, x1, args),
+        reverse=jax.jacrev(dg, argnums=2)(f, x, x1, args),
+        wrt_first=jax.jacrev(dg, argnums=1)(f, x, x1, args),
+    )
+
+
+@pytest.mark.parametrize("dg", DISCRETE_GRADIENTS, ids=lambda dg: dg.__name__)
+@given(function=functions, points=point_pairs())
+def test_energy_condition(dg, function, points):
+    f, args = function
+    x, x1 = points
+    out = evaluate(dg, f, x, x1, args)
+    defect = out["value"] @ (x1 - x) - out["change"]
+    assert abs(float(defect)) <= 1e-13 * float(out["scale"])
+
+
+@pytest.mark.parametrize("dg", DISCRETE_GRADIENTS, ids=lambda dg: dg.__name__)
+@given(function=functions, x=vectors)
+def test_consistency_condition(dg, function, x):
+    f, args = function
+    x = jnp.array(x)
+    out = evaluate(dg, f, x, x, args)
+    np.testing.assert_allclose(out["value"], out["grad_x"], rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("dg", SYMMETRIC, ids=lambda dg: dg.__name__)
+@given(function=functions, points=point_pairs())
+def test_symmetric_gradients_are_midpoint_gradient_to_second_order(dg, function, points):
+    """|dg(x, x') - grad f((x + x')/2)| = O(|x' - x|^2), and dg(x, x') = dg(x', x). The
+    printed Gonzalez formula loses the first once |x' - x| < 1e-5."""
+    f, args = function
+    x, x1 = points
+    out = evaluate(dg, f, x, x1, args)
+    distance = float(jnp.linalg.norm(x1 - x))
+    error = float(jnp.max(jnp.abs(out["value"] - out["grad_mid"])))
+    assert error <= 50 * distance**2 + 1e-13 * float(out["scale"])
+    np.testing.assert_allclose(out["value"], out["reversed"], rtol=1e-12, atol=1e-13)
+
+
+def test_printed_gonzalez_formula_would_fail_the_accuracy_test():
+    """Guards the test above: the formula as printed, at |x' - x| = 1e-10."""
+    f = lambda x, args: jnp.sin(x[0]) * x[1] ** 3 + jnp.cos(x[1] * x[2])  # noqa: E731
+    x = jnp.array([0.3, -0.2, 0.4])
+    x1 = x + 1e-10 * jnp.array([1.0, -0.5, 0.2])
+    d, m = x1 - x, 0.5 * (x + x1)
+    g = jax.grad(f)(m, None)
+    printed = g + (f(x1, None) - f(x, None) - g @ d) / (d @ d) * d
+    assert float(jnp.max(jnp.abs(printed - g))) > 1e-8
+    assert float(jnp.max(jnp.abs(nh.gonzalez(f, x, x1, None) - g))) < 1e-15
+
+
+def _expected_jacobian(dg, hessian):
+    """d dg(x, x')/dx' at x' = x: Hess/2 for the symmetric ones; for Itoh-Abe the strict
+    lower triangle of the Hessian plus half its diagonal."""
+    if dg is nh.itoh_abe:
+        return jnp.tril(hessian, -1) + 0.5 * jnp.diag(jnp.diag(hessian))
+    return 0.5 * hessian
+
+
+@pytest.mark.parametrize("dg", DISCRETE_GRADIENTS, ids=lambda dg: dg.__name__)
+@pytest.mark.parametrize("distance", [0.0, 1e-12, 1e-7])
+@given(function=functions, x=vectors, direction=vectors)
+def test_derivatives_at_and_near_equal_points(dg, distance, function, x, direction):
+    f, args = function
+    x = jnp.array(0.5 * x)
+    x1 = x + distance * jnp.array(direction)
+    out = evaluate(dg, f, x, x1, args)
+    assert bool(jnp.all(jnp.isfinite(out["wrt_first"])))
+    np.testing.assert_allclose(out["forward"], out["reverse"], rtol=1e-12, atol=1e-12)
+    expected = _expected_jacobian(dg, out["hessian"])
+    np.testing.assert_allclose(out["forward"], expected, rtol=0, atol=1e-9 + 1e3 * distance)
+
+
+def test_avf_node_count_is_configurable_and_exact_for_polynomials():
+    f = lambda x, args: x[0] ** 6 + x[0] * x[1] ** 2  # noqa: E731
+    x, x1 = jnp.array([0.2, -0.7]), jnp.array([1.1, 0.4])
+    exact_change = f(x1, None) - f(x, None)
+    three_nodes = functools.partial(nh.avf, nodes=3)  # exact up to degree 6
+    one_node = functools.partial(nh.avf, nodes=1)  # the midpoint gradient
+    assert abs(float(three_nodes(f, x, x1, None) @ (x1 - x) - exact_change)) < 1e-14
+    assert abs(float(one_node(f, x, x1, None) @ (x1 - x) - exact_change)) > 1e-3
+    with pytest.raises(ValueError, match="node"):
+        nh.avf(f, x, x1, None, nodes=0)
