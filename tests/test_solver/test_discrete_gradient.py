@@ -1,0 +1,146 @@
+"""The DiscreteGradient method: energy to roundoff, order, time-symmetry, pluggable parts."""
+
+import functools
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax as nh
+
+from ..helpers import fitted_order, quartic_reference, relative_energy_error
+
+
+EXAMPLES = {
+    "rolling_disk": (nh.examples.rolling_disk(), lambda e: e.initial_state()),
+    "chaplygin_sleigh": (nh.examples.chaplygin_sleigh(), lambda e: e.initial_state(rho1=0.3)),
+    "suslov": (nh.examples.suslov(), lambda e: e.initial_state()),
+    "chaotic_quartic": (nh.examples.chaotic_quartic(), lambda e: e.initial_state(0.7)),
+}
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_energy_conserved_to_roundoff_over_ten_thousand_steps(name):
+    example, initial = EXAMPLES[name]
+    solution = nh.integrate(
+        example.adapted, nh.DiscreteGradient(), initial(example), 0.1, 10_000, args=example.args
+    )
+    assert solution.result == nh.RESULTS.successful
+    assert relative_energy_error(solution) <= 1e-13
+
+
+def _one_step(method, system, t0, t1, y, args):
+    state = method.init(system, t0, t1, y, args)
+    y1, _, _, _, result = method.step(system, t0, t1, y, args, state, False)
+    assert result == diffrax.RESULTS.successful
+    return y1
+
+
+@pytest.mark.parametrize(
+    "discrete_gradient, symmetric",
+    [(nh.gonzalez, True), (nh.avf, True), (nh.itoh_abe, False)],
+    ids=["gonzalez", "avf", "itoh_abe"],
+)
+def test_time_symmetry(discrete_gradient, symmetric):
+    """A step with h then one with -h returns the start for symmetric discrete
+    gradients, and visibly does not for Itoh-Abe (a control on the test)."""
+    quartic = nh.examples.chaotic_quartic()
+    method = nh.DiscreteGradient(discrete_gradient)
+    system, x0 = quartic.adapted, quartic.initial_state(1.3)
+    x1 = _one_step(method, system, 0.0, 0.2, x0, None)
+    back = _one_step(method, system, 0.2, 0.0, x1, None)
+    distance = float(jnp.max(jnp.abs(back - x0)))
+    if symmetric:
+        assert distance <= 1e-14
+    else:
+        assert distance > 1e-6
+
+
+def _quartic_errors(method, step_sizes, t1=10.0):
+    quartic = nh.examples.chaotic_quartic()
+    x0 = quartic.initial_state(0.4)
+    q_ref, p_ref = quartic_reference(*quartic.from_adapted(x0), t1)
+    errors = []
+    for h in step_sizes:
+        solution = nh.integrate(quartic.adapted, method, x0, h, round(t1 / h), save_every=round(t1 / h))
+        q, p = quartic.from_adapted(solution.ys[-1])
+        errors.append(float(jnp.max(jnp.abs(jnp.concatenate([q - q_ref, p - p_ref])))))
+    return errors
+
+
+@pytest.mark.parametrize("discrete_gradient", [nh.gonzalez, nh.avf], ids=["gonzalez", "avf"])
+def test_second_order_on_the_quartic_against_an_independent_reference(discrete_gradient):
+    step_sizes = [0.1, 0.05, 0.025]
+    errors = _quartic_errors(nh.DiscreteGradient(discrete_gradient), step_sizes)
+    assert 1.9 <= fitted_order(step_sizes, errors) <= 2.1
+    assert errors[-1] < 1e-2
+
+
+def test_itoh_abe_is_first_order_on_the_quartic():
+    step_sizes = [0.05, 0.025, 0.0125]
+    errors = _quartic_errors(nh.DiscreteGradient(nh.itoh_abe), step_sizes)
+    assert 0.85 <= fitted_order(step_sizes, errors) <= 1.15
+
+
+def test_second_order_on_the_rolling_disk_against_its_exact_solution():
+    disk = nh.examples.rolling_disk()
+    x0 = disk.initial_state(x1=0.3, theta=0.2, rho1=1.5, rho2=0.7)
+    exact = disk.exact_solution(10.0, x0)
+    step_sizes = [0.2, 0.1, 0.05, 0.025]
+    errors = []
+    for h in step_sizes:
+        n = round(10.0 / h)
+        solution = nh.integrate(disk.adapted, nh.DiscreteGradient(), x0, h, n, args=disk.args, save_every=n)
+        errors.append(float(jnp.max(jnp.abs(solution.ys[-1] - exact))))
+    assert 1.95 <= fitted_order(step_sizes, errors) <= 2.05
+
+
+def test_structure_approximation_is_pluggable():
+    """The averaged structure is another symmetric skew choice: energy still exact and
+    the step differs from the midpoint one."""
+    quartic = nh.examples.chaotic_quartic()
+    x0 = quartic.initial_state(2.0)
+    averaged = nh.DiscreteGradient(structure_approximation=nh.averaged_structure)
+    sol_avg = nh.integrate(quartic.adapted, averaged, x0, 0.1, 1000)
+    sol_mid = nh.integrate(quartic.adapted, nh.DiscreteGradient(), x0, 0.1, 1000)
+    assert relative_energy_error(sol_avg) <= 1e-13
+    assert float(jnp.max(jnp.abs(sol_avg.ys[-1] - sol_mid.ys[-1]))) > 1e-6
+
+
+def test_custom_root_finder_is_used():
+    quartic = nh.examples.chaotic_quartic()
+    x0 = quartic.initial_state(2.0)
+    chord = nh.DiscreteGradient(root_finder=__import__("optimistix").Chord(rtol=0.0, atol=1e-14))
+    solution = nh.integrate(quartic.adapted, chord, x0, 0.1, 200)
+    newton = nh.integrate(quartic.adapted, nh.DiscreteGradient(), x0, 0.1, 200)
+    assert relative_energy_error(solution) <= 1e-13
+    np.testing.assert_allclose(solution.ys, newton.ys, atol=1e-12)
+    assert int(solution.stats["root_find_steps"]) > int(newton.stats["root_find_steps"])
+
+
+def test_float32_conserves_energy_to_float32_roundoff():
+    quartic = nh.examples.chaotic_quartic()
+    x0 = quartic.initial_state(0.7, dtype=jnp.float32)
+    solution = nh.integrate(quartic.adapted, nh.DiscreteGradient(), x0, 0.1, 1000)
+    assert solution.ys.dtype == jnp.float32 and solution.energy.dtype == jnp.float32
+    assert solution.result == nh.RESULTS.successful
+    assert relative_energy_error(solution) <= 100 * float(jnp.finfo(jnp.float32).eps)
+
+
+def test_order_reported_to_diffrax():
+    assert nh.DiscreteGradient().order(None) == 2
+    assert nh.DiscreteGradient(functools.partial(nh.avf, nodes=4)).order(None) == 2
+    assert nh.DiscreteGradient(nh.itoh_abe).order(None) == 1
+
+
+def test_diffeqsolve_drives_the_method_directly():
+    sleigh = nh.examples.chaplygin_sleigh()
+    x0 = sleigh.initial_state(rho1=0.3)
+    ours = nh.integrate(sleigh.adapted, nh.DiscreteGradient(), x0, 0.5, 40, args=sleigh.args)
+    theirs = diffrax.diffeqsolve(
+        sleigh.adapted, nh.DiscreteGradient(), 0.0, 20.0, 0.5, x0, args=sleigh.args,
+        saveat=diffrax.SaveAt(t1=True),
+    )
+    np.testing.assert_allclose(theirs.ys[-1], ours.ys[-1], rtol=1e-12, atol=1e-13)
