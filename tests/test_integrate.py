@@ -1,0 +1,154 @@
+"""The time loop: saving, statistics, jit/vmap, compile-once, and bad input."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax as nh
+
+
+QUARTIC = nh.examples.chaotic_quartic()
+METHOD = nh.DiscreteGradient()
+
+
+def test_vmapped_batch_of_200_equals_single_runs():
+    states = QUARTIC.random_initial_states(jax.random.key(1), 200)
+    run = lambda x0: nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 50, save_every=10)  # noqa: E731
+    batch = jax.vmap(run)(states)
+    assert batch.ys.shape == (200, 6, 13)
+    singles = np.stack([np.asarray(run(x0).ys) for x0 in states])
+    np.testing.assert_allclose(batch.ys, singles, rtol=1e-13, atol=1e-13)
+    assert bool(jnp.all(batch.result == nh.RESULTS.successful))
+
+
+def test_compiles_once_for_new_states_step_sizes_and_parameters():
+    traces = []
+
+    def hamiltonian(x, args):
+        traces.append(None)
+        return 0.5 * args["k"] * x @ x
+
+    system = nh.SkewGradientSystem(hamiltonian, lambda x, args: jnp.array([[0.0, 1.0], [-1.0, 0.0]]))
+    nh.integrate(system, METHOD, jnp.array([1.0, 0.0]), 0.1, 20, args={"k": 1.0})
+    count = len(traces)
+    nh.integrate(system, METHOD, jnp.array([0.3, 0.5]), 0.05, 20, args={"k": 2.0})
+    nh.integrate(system, METHOD, jnp.array([0.2, 0.1]), jnp.array(0.2), 20, args={"k": 3.0})
+    assert len(traces) == count
+
+
+def test_save_every_and_times():
+    x0 = QUARTIC.initial_state(0.5)
+    every = nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 40)
+    sparse = nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 40, save_every=8)
+    np.testing.assert_allclose(sparse.ts, 0.8 * jnp.arange(6), rtol=1e-15)
+    np.testing.assert_array_equal(sparse.ys, every.ys[::8])
+    later = nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 40, save_every=8, t0=1.0)
+    np.testing.assert_allclose(later.ts, 1.0 + 0.8 * jnp.arange(6), rtol=1e-15)
+    np.testing.assert_allclose(later.ys, sparse.ys, rtol=1e-13, atol=1e-13)
+    np.testing.assert_array_equal(sparse.energy, every.energy[::8])
+    assert sparse.constraint is None
+    assert int(every.stats["num_steps"]) == 40
+    assert int(every.stats["root_find_steps"]) >= 40 and int(every.stats["max_root_find_steps"]) >= 1
+
+
+def test_under_jit_and_with_a_progress_bar(capsys):
+    x0 = QUARTIC.initial_state(0.5)
+    jitted = jax.jit(lambda x0, dt: nh.integrate(QUARTIC.adapted, METHOD, x0, dt, 30).ys)
+    plain = nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 30, progress=True)
+    np.testing.assert_allclose(jitted(x0, 0.1), plain.ys, rtol=1e-14, atol=1e-14)
+    assert "100.00%" in capsys.readouterr().err
+
+
+def _rotation(x, args):
+    del x, args
+    return jnp.array([[0.0, 1.0], [-1.0, 0.0]])
+
+
+def test_shape_errors_name_the_problem():
+    oscillator = nh.SkewGradientSystem(lambda x, args: 0.5 * x @ x, _rotation)
+    with pytest.raises(ValueError, match="1-D"):
+        nh.integrate(oscillator, METHOD, jnp.ones((2, 2)), 0.1, 10)
+    with pytest.raises(ValueError, match="floating"):
+        nh.integrate(oscillator, METHOD, jnp.array([1, 0]), 0.1, 10)
+    with pytest.raises(ValueError, match=r"\(3, 3\) matrix"):
+        nh.integrate(oscillator, METHOD, jnp.ones(3), 0.1, 10)
+    vector_energy = nh.SkewGradientSystem(lambda x, args: x, _rotation)
+    with pytest.raises(ValueError, match="scalar"):
+        nh.integrate(vector_energy, METHOD, jnp.ones(2), 0.1, 10)
+
+
+def test_argument_errors():
+    oscillator = nh.SkewGradientSystem(lambda x, args: 0.5 * x @ x, _rotation)
+    x0 = jnp.array([1.0, 0.0])
+    for dt in (0.0, -0.1):
+        with pytest.raises(ValueError, match="dt must be positive"):
+            nh.integrate(oscillator, METHOD, x0, dt, 10)
+    with pytest.raises(ValueError, match="n_steps"):
+        nh.integrate(oscillator, METHOD, x0, 0.1, 10.0)
+    with pytest.raises(ValueError, match="must divide"):
+        nh.integrate(oscillator, METHOD, x0, 0.1, 10, save_every=3)
+
+
+def test_traced_nonpositive_dt_gets_a_result_code():
+    oscillator = nh.SkewGradientSystem(lambda x, args: 0.5 * x @ x, _rotation)
+    run = jax.jit(lambda dt: nh.integrate(oscillator, METHOD, jnp.array([1.0, 0.0]), dt, 10, throw=False).result)
+    assert run(-0.1) == nh.RESULTS.nonpositive_dt
+    assert run(0.1) == nh.RESULTS.successful
+    with pytest.raises(Exception, match="dt must be positive"):
+        jax.jit(lambda dt: nh.integrate(oscillator, METHOD, jnp.array([1.0, 0.0]), dt, 10).ys)(-0.1)
+
+
+def test_structure_that_is_not_skew():
+    symmetric = nh.SkewGradientSystem(lambda x, args: 0.5 * x @ x, lambda x, args: jnp.eye(2))
+    with pytest.raises(Exception, match="not skew-symmetric"):
+        nh.integrate(symmetric, METHOD, jnp.array([1.0, 0.0]), 0.1, 10)
+    solution = nh.integrate(symmetric, METHOD, jnp.array([1.0, 0.0]), 0.1, 10, throw=False)
+    assert solution.result == nh.RESULTS.structure_not_skew
+    assert not bool(jnp.any(jnp.isfinite(solution.ys[1:])))
+
+
+def test_nonfinite_initial_state():
+    x0 = QUARTIC.initial_state(0.5).at[3].set(jnp.nan)
+    with pytest.raises(Exception, match="initial state contains NaN"):
+        nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 10)
+
+
+def _fragile_oscillator():
+    """A rotation in the plane whose energy is undefined for x0 > 2: orbits of radius
+    above 2 reach it after a few steps, smaller ones never do."""
+    hamiltonian = lambda x, args: 0.5 * x @ x + jnp.sqrt(2.0 - x[0]) - jnp.sqrt(2.0 - x[0])  # noqa: E731
+    return nh.SkewGradientSystem(hamiltonian, _rotation)
+
+
+def test_one_failing_trajectory_does_not_spoil_the_batch():
+    system = _fragile_oscillator()
+    states = jnp.array([[0.0, 1.0], [0.0, 3.0], [0.5, 0.5]])
+    run = lambda x0: nh.integrate(system, METHOD, x0, 0.1, 60, throw=False)  # noqa: E731
+    batch = jax.vmap(run)(states)
+    np.testing.assert_array_equal(batch.result == nh.RESULTS.successful, [True, False, True])
+    for i in (0, 2):
+        np.testing.assert_allclose(batch.ys[i], run(states[i]).ys, rtol=1e-14, atol=1e-15)
+    failed = np.asarray(batch.ys[1])
+    finite_rows = np.all(np.isfinite(failed), axis=1)
+    first_bad = int(np.argmin(finite_rows))
+    assert 1 < first_bad < 60 and not finite_rows[first_bad:].any()
+    with pytest.raises(Exception, match="non-finite|not solved to tolerance|singular"):
+        nh.integrate(system, METHOD, states[1], 0.1, 60)
+
+
+def test_root_find_failure_is_reported():
+    x0 = QUARTIC.initial_state(0.5)
+    starved = nh.DiscreteGradient(root_find_max_steps=1)
+    solution = nh.integrate(QUARTIC.adapted, starved, x0, 0.1, 10, throw=False)
+    assert solution.result == nh.RESULTS.root_find_not_converged
+    assert "root_find_max_steps" in nh.RESULTS[solution.result]
+    with pytest.raises(Exception, match="not solved to tolerance"):
+        nh.integrate(QUARTIC.adapted, starved, x0, 0.1, 10)
+
+
+def test_solution_is_a_pytree():
+    solution = nh.integrate(QUARTIC.adapted, METHOD, QUARTIC.initial_state(0.5), 0.1, 5)
+    assert isinstance(solution, eqx.Module)
+    assert len(jax.tree.leaves(solution)) >= 5
