@@ -1,0 +1,89 @@
+"""DiscreteGradient on the reduced chaotic quartic (n = 3, h = 0.1): µs/step for one
+trajectory, trajectory-steps/s for a vmapped batch of 200, and compile time.
+
+Run: python benchmarks/discrete_gradient.py [--steps N] [--repeats R]
+Figures are medians over repeats; results go to benchmarks/results/discrete_gradient.json.
+"""
+
+import argparse
+import json
+import pathlib
+import platform
+import statistics
+import time
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+
+import nhjax as nh  # noqa: E402
+
+
+def _timed(function, *arguments):
+    start = time.perf_counter()
+    jax.block_until_ready(function(*arguments))
+    return time.perf_counter() - start
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--steps", type=int, default=20_000)
+    parser.add_argument("--batch-steps", type=int, default=2_000)
+    parser.add_argument("--batch", type=int, default=200)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "discrete_gradient.json"))
+    options = parser.parse_args()
+
+    quartic = nh.examples.chaotic_quartic(3)
+    method = nh.DiscreteGradient()
+    h = 0.1
+
+    single = jax.jit(lambda x0: nh.integrate(quartic.adapted, method, x0, h, options.steps, save_every=options.steps).ys)
+    batch = jax.jit(jax.vmap(
+        lambda x0: nh.integrate(quartic.adapted, method, x0, h, options.batch_steps, save_every=options.batch_steps).ys
+    ))
+    x0 = quartic.initial_state(0.7)
+    states = quartic.random_initial_states(jax.random.key(0), options.batch)
+
+    compile_single = _timed(lambda x: single.lower(x).compile(), x0)
+    compile_batch = _timed(lambda x: batch.lower(x).compile(), states)
+    _timed(single, x0)
+    _timed(batch, states)
+    single_times = [_timed(single, x0) for _ in range(options.repeats)]
+    batch_times = [_timed(batch, states) for _ in range(options.repeats)]
+
+    us_per_step = statistics.median(single_times) / options.steps * 1e6
+    batch_rate = options.batch * options.batch_steps / statistics.median(batch_times)
+    iterations = nh.integrate(quartic.adapted, method, x0, h, options.steps, save_every=options.steps).stats
+    results = dict(
+        system="chaotic quartic, adapted (n = 3, N = 13)",
+        method="DiscreteGradient(gonzalez), midpoint structure, Newton",
+        h=h,
+        single=dict(steps=options.steps, us_per_step=us_per_step, target_us_per_step=5.0),
+        batch=dict(
+            trajectories=options.batch,
+            steps=options.batch_steps,
+            trajectory_steps_per_s=batch_rate,
+            target_trajectory_steps_per_s=1e6,
+        ),
+        compile_s=dict(single=compile_single, batch=compile_batch, target=10.0),
+        newton_iterations_per_step=float(iterations["root_find_steps"]) / options.steps,
+        repeats=options.repeats,
+        machine=dict(processor=platform.processor(), cpus=jax.local_device_count(), backend=jax.default_backend()),
+        jax=jax.__version__,
+    )
+    print(f"single trajectory : {us_per_step:8.2f} µs/step  (target <= 5)")
+    print(f"batch of {options.batch:<8} : {batch_rate:10.3e} trajectory-steps/s  (target >= 1e6)")
+    print(f"compile           : {compile_single:.2f} s single, {compile_batch:.2f} s batch  (target <= 10)")
+    print(f"Newton iterations : {results['newton_iterations_per_step']:.2f} per step")
+    path = pathlib.Path(options.out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(results, indent=2))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
