@@ -5,6 +5,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import nhjax as nh
+
 
 def fitted_order(step_sizes, errors) -> float:
     """Slope of log(error) against log(h), least squares."""
@@ -46,3 +48,14 @@ def quartic_reference(q0, p0, t1, n=3):
         max_steps=100_000,
     )
     return jax.tree.map(lambda y: y[-1], solution.ys)
+
+
+def final_state_errors(system, method, y0, t1, step_sizes, reference, args=None, observe=None):
+    """max |observe(y_N) - reference| after integrating to t1 with each step size."""
+    observe = (lambda y: y) if observe is None else observe
+    errors = []
+    for h in step_sizes:
+        n = round(t1 / h)
+        solution = nh.integrate(system, method, y0, h, n, args=args, save_every=n)
+        errors.append(float(jnp.max(jnp.abs(observe(solution.ys[-1]) - reference))))
+    return errors

@@ -10,7 +10,7 @@ import pytest
 
 import nhjax as nh
 
-from ..helpers import fitted_order, quartic_reference, relative_energy_error
+from ..helpers import final_state_errors, fitted_order, quartic_reference, relative_energy_error
 
 
 EXAMPLES = {
@@ -61,13 +61,9 @@ def test_time_symmetry(discrete_gradient, symmetric):
 def _quartic_errors(method, step_sizes, t1=10.0):
     quartic = nh.examples.chaotic_quartic()
     x0 = quartic.initial_state(0.4)
-    q_ref, p_ref = quartic_reference(*quartic.from_adapted(x0), t1)
-    errors = []
-    for h in step_sizes:
-        solution = nh.integrate(quartic.adapted, method, x0, h, round(t1 / h), save_every=round(t1 / h))
-        q, p = quartic.from_adapted(solution.ys[-1])
-        errors.append(float(jnp.max(jnp.abs(jnp.concatenate([q - q_ref, p - p_ref])))))
-    return errors
+    reference = jnp.concatenate(quartic_reference(*quartic.from_adapted(x0), t1))
+    canonical = lambda x: jnp.concatenate(quartic.from_adapted(x))  # noqa: E731
+    return final_state_errors(quartic.adapted, method, x0, t1, step_sizes, reference, observe=canonical)
 
 
 @pytest.mark.parametrize("discrete_gradient", [nh.gonzalez, nh.avf], ids=["gonzalez", "avf"])
@@ -89,11 +85,7 @@ def test_second_order_on_the_rolling_disk_against_its_exact_solution():
     x0 = disk.initial_state(x1=0.3, theta=0.2, rho1=1.5, rho2=0.7)
     exact = disk.exact_solution(10.0, x0)
     step_sizes = [0.2, 0.1, 0.05, 0.025]
-    errors = []
-    for h in step_sizes:
-        n = round(10.0 / h)
-        solution = nh.integrate(disk.adapted, nh.DiscreteGradient(), x0, h, n, args=disk.args, save_every=n)
-        errors.append(float(jnp.max(jnp.abs(solution.ys[-1] - exact))))
+    errors = final_state_errors(disk.adapted, nh.DiscreteGradient(), x0, 10.0, step_sizes, exact, args=disk.args)
     assert 1.95 <= fitted_order(step_sizes, errors) <= 2.05
 
 
