@@ -24,9 +24,7 @@ def _demo(arguments) -> int:
     jax.block_until_ready(solution.ys)
     elapsed = time.perf_counter() - start
 
-    q = solution.ys[:, :3]
-    midpoints = 0.5 * (q[1:] + q[:-1])
-    discrete = jax.vmap(lambda qm, dq: sleigh.constraints(qm, sleigh.args) @ dq)(midpoints, q[1:] - q[:-1])
+    discrete = nh.examples.discrete_constraint_residual(sleigh.constraints, solution.ys[:, :3], sleigh.args)
 
     def canonical_residual(x):
         q, p = sleigh.from_adapted(x)

@@ -43,21 +43,18 @@ from jaxtyping import Array, Float
 ScalarFunction = Callable[[Float[Array, " N"], Any], Float[Array, ""]]
 
 _GAUSS2_OFFSET = 0.5 / math.sqrt(3.0)
-# Gonzalez's Taylor remainder is |f^(5)| |delta|^5 / 1920 (not / 4320): a slightly lower
-# switch, (1920 eps)^(1/5) instead of (4320 eps)^(1/5).
-_TAYLOR_SWITCH_FACTOR = (1920.0 / 4320.0) ** 0.2
+# Truncation constants C of the local expansions: |f^(5)| |delta|^5 / C.
+_GAUSS2_TRUNCATION = 4320.0
+_TAYLOR_TRUNCATION = 1920.0
 
 
-def _near_switch(dtype) -> float:
-    """Relative size of $|x' - x|$ below which quadrature replaces the divided
-    difference: where $|\\delta|^4/4320$ (quadrature) meets $\\epsilon/|\\delta|$
-    (cancellation)."""
-    return (4320.0 * float(jnp.finfo(dtype).eps)) ** 0.2
-
-
-def _is_near(x, x1, delta):
+def _is_near(x, x1, delta, truncation: float):
+    r"""Where $|\delta|$ is below the switch $\tau(1 + |\bar x|_\infty)$,
+    $\tau = (C\epsilon)^{1/5}$: there the expansion's truncation error, $|\delta|^5/C$,
+    is below the cancellation error $\epsilon$ of the printed divided difference."""
+    switch = (truncation * float(jnp.finfo(x.dtype).eps)) ** 0.2
     midpoint_scale = 1.0 + jnp.max(jnp.abs(0.5 * (x + x1)))
-    return jnp.abs(delta) < _near_switch(x.dtype) * midpoint_scale
+    return jnp.abs(delta) < switch * midpoint_scale
 
 
 def avf(
@@ -130,24 +127,19 @@ def gonzalez(
     delta = x1 - x
     midpoint = 0.5 * (x + x1)
     grad_mid = jax.grad(f)(midpoint, args)
-    near = jnp.max(jnp.abs(delta)) < _TAYLOR_SWITCH_FACTOR * _near_switch(x.dtype) * (
-        1.0 + jnp.max(jnp.abs(midpoint))
-    )
+    near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
 
-    def printed(operands):
-        x, x1, delta, grad_mid = operands
+    def printed():
         numerator = f(x1, args) - f(x, args) - grad_mid @ delta
         return (numerator / jnp.where(near, 1.0, delta @ delta)) * delta
 
-    def taylor(operands):
-        _, _, delta, _ = operands
+    def taylor():
         length = _safe_norm(delta)
         direction = delta / jnp.where(length == 0, 1.0, length)
         third = _third_directional_derivative(f, midpoint, direction, args)
         return (third * length / 24.0) * delta
 
-    correction = jax.lax.cond(near, taylor, printed, (x, x1, delta, grad_mid))
-    return grad_mid + correction
+    return grad_mid + jax.lax.cond(near, taylor, printed)
 
 
 def itoh_abe(
@@ -172,7 +164,7 @@ def itoh_abe(
     corners = jnp.where(from_new, x1[None, :], x[None, :])
     values = jax.vmap(f, in_axes=(0, None))(corners, args)
     delta = x1 - x
-    near = _is_near(x, x1, delta)
+    near = _is_near(x, x1, delta, _GAUSS2_TRUNCATION)
     printed = (values[1:] - values[:-1]) / jnp.where(near, 1.0, delta)
 
     segment_midpoints = corners[:-1].at[index, index].set(0.5 * (x + x1))

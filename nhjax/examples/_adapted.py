@@ -5,6 +5,7 @@ metric $g(q)$, the momenta on $\mathcal{D}^*$ are $\rho = X^T p$ (ptildetop) and
 $p$ on $\mathcal{F}L(\mathcal{D})$, $p = g X (X^T g X)^{-1} \rho$ (ptoptilde).
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -28,3 +29,12 @@ def momentum_to_adapted(frame, p):
 def adapted_to_momentum(frame, metric, rho):
     """p = g X (X^T g X)^{-1} rho, eq. (ptoptilde)."""
     return metric @ frame @ jnp.linalg.solve(frame.T @ metric @ frame, rho)
+
+
+def discrete_constraint_residual(constraints, qs: Float[Array, "T n"], args=None) -> Float[Array, "T-1 k"]:
+    r"""$A(\bar q)(q_{k+1} - q_k)$, $\bar q = (q_k + q_{k+1})/2$, along saved positions
+    `qs`: zero to roundoff for a discrete-gradient method with the midpoint structure,
+    whose $q$-update $h X(\bar q) \partial\bar{\mathcal{H}}/\partial\rho$ lies in
+    $\mathcal{D}_{\bar q}$ (§3.2, preservation of the nonholonomic constraints)."""
+    midpoints = 0.5 * (qs[1:] + qs[:-1])
+    return jax.vmap(lambda q, dq: constraints(q, args) @ dq)(midpoints, qs[1:] - qs[:-1])

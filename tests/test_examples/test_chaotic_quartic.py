@@ -24,9 +24,7 @@ def test_random_initial_states_have_the_papers_energy_and_satisfy_the_constraint
 def test_discrete_constraint_and_canonical_constraint_to_roundoff():
     x0 = QUARTIC.initial_state(0.9)
     solution = nh.integrate(QUARTIC.adapted, nh.DiscreteGradient(), x0, 0.1, 1000)
-    q = solution.ys[:, :7]
-    midpoints = 0.5 * (q[1:] + q[:-1])
-    discrete = jax.vmap(lambda qm, dq: QUARTIC.constraints(qm) @ dq)(midpoints, q[1:] - q[:-1])
+    discrete = nh.examples.discrete_constraint_residual(QUARTIC.constraints, solution.ys[:, :7])
     assert float(jnp.max(jnp.abs(discrete))) <= 1e-14
     qs, ps = jax.vmap(QUARTIC.from_adapted)(solution.ys)
     canonical = jax.vmap(lambda q, p: QUARTIC.constraints(q) @ p)(qs, ps)

@@ -49,9 +49,7 @@ def test_discrete_constraint_to_roundoff():
     """q' - q = h X(qbar) dH: A(qbar)(q' - q) = 0 with qbar the midpoint."""
     x0 = SLEIGH.initial_state(rho1=0.4, rho2=-0.3)
     solution = nh.integrate(SLEIGH.adapted, nh.DiscreteGradient(), x0, 0.5, 500, args=SLEIGH.args)
-    q = solution.ys[:, :3]
-    midpoints = 0.5 * (q[1:] + q[:-1])
-    residual = jax.vmap(lambda qm, dq: SLEIGH.constraints(qm, SLEIGH.args) @ dq)(midpoints, q[1:] - q[:-1])
+    residual = nh.examples.discrete_constraint_residual(SLEIGH.constraints, solution.ys[:, :3], SLEIGH.args)
     assert float(jnp.max(jnp.abs(residual))) <= 1e-14
 
 

@@ -16,8 +16,7 @@ def test_discrete_constraints_to_roundoff():
     x0 = DISK.initial_state(rho1=1.3, rho2=0.9)
     solution = nh.integrate(DISK.adapted, nh.DiscreteGradient(), x0, 0.3, 1000, args=DISK.args)
     q = solution.ys[:, :4]
-    midpoints = 0.5 * (q[1:] + q[:-1])
-    residual = jax.vmap(lambda qm, dq: DISK.constraints(qm, DISK.args) @ dq)(midpoints, q[1:] - q[:-1])
+    residual = nh.examples.discrete_constraint_residual(DISK.constraints, q, DISK.args)
     assert float(jnp.max(jnp.abs(residual))) <= 1e-14 * float(jnp.max(jnp.abs(q)))
 
 
