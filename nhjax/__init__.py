@@ -8,11 +8,14 @@ conservation to roundoff. float32 works too, with tolerances that follow the dty
 from . import examples as examples
 from ._discrete_gradient import avf as avf, gonzalez as gonzalez, itoh_abe as itoh_abe
 from ._integrate import integrate as integrate, Solution as Solution
+from ._nonholonomic import NonholonomicSystem as NonholonomicSystem
 from ._results import RESULTS as RESULTS
 from ._solver import (
     AbstractMethod as AbstractMethod,
     averaged_structure as averaged_structure,
     DiscreteGradient as DiscreteGradient,
+    GonzalezF as GonzalezF,
+    GonzalezR as GonzalezR,
     midpoint_structure as midpoint_structure,
 )
 from ._system import AbstractSystem as AbstractSystem, SkewGradientSystem as SkewGradientSystem

@@ -124,22 +124,47 @@ def gonzalez(
     autodiff without any cancellation. Only the branch in use is evaluated
     (`lax.cond`, except under `vmap`).
     """
+    midpoint = 0.5 * (x + x1)
+    return gonzalez_correction(f, jax.grad(f)(midpoint, args), x, x1, args)
+
+
+def gonzalez_correction(
+    f: ScalarFunction,
+    gradient: Float[Array, " N"],
+    x: Float[Array, " N"],
+    x1: Float[Array, " N"],
+    args: Any = None,
+    *,
+    taylor: bool = True,
+) -> Float[Array, " N"]:
+    r"""$g + \frac{f(x') - f(x) - g^T\delta}{|\delta|^2}\delta$ for a given midpoint
+    gradient $g$: (gonzales) when $g = \nabla f(\bar x)$.
+
+    (discGradEn) holds for any $g$. With `taylor=True`, $g$ must be $\nabla f(\bar x)$
+    and nearly equal points use the Taylor form of `gonzalez`. With `taylor=False` (for
+    an approximate $g$, as in GONZALEZ-R with finite differences, where no expansion
+    applies) the printed formula is used down to $\delta = 0$, where the value is $g$.
+    """
     delta = x1 - x
     midpoint = 0.5 * (x + x1)
-    grad_mid = jax.grad(f)(midpoint, args)
-    near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
+    if taylor:
+        near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
+    else:
+        near = jnp.all(delta == 0)
 
     def printed():
-        numerator = f(x1, args) - f(x, args) - grad_mid @ delta
+        numerator = f(x1, args) - f(x, args) - gradient @ delta
         return (numerator / jnp.where(near, 1.0, delta @ delta)) * delta
 
-    def taylor():
+    def taylor_form():
         length = _safe_norm(delta)
         direction = delta / jnp.where(length == 0, 1.0, length)
         third = _third_directional_derivative(f, midpoint, direction, args)
         return (third * length / 24.0) * delta
 
-    return grad_mid + jax.lax.cond(near, taylor, printed)
+    if not taylor:
+        return gradient + jnp.where(near, 0.0, printed())
+    return gradient + jax.lax.cond(near, taylor_form, printed)
 
 
 def itoh_abe(

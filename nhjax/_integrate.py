@@ -153,14 +153,18 @@ def _integrate(system, method, y0, dt, t0, args, *, n_steps, save_every, progres
         progress_meter=meter,
     )
     ys, observed = solution.ys
-    result = first_failure(initial_result, from_diffrax(solution.result))
+    method_state = solution.solver_state
+    result = first_failure(
+        initial_result,
+        getattr(method_state, "failure", RESULTS.successful),
+        from_diffrax(solution.result),
+    )
     if throw:
         ys = result.error_if(ys, result != RESULTS.successful)
-    root_find = solution.solver_state
     stats = dict(
         num_steps=solution.stats["num_accepted_steps"],
-        root_find_steps=getattr(root_find, "total_steps", None),
-        max_root_find_steps=getattr(root_find, "max_steps", None),
+        root_find_steps=getattr(method_state, "total_steps", None),
+        max_root_find_steps=getattr(method_state, "max_steps", None),
     )
     return Solution(
         ts=solution.ts,

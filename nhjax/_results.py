@@ -13,6 +13,20 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "structure(x, args) is not skew-symmetric at the initial state, so the flow "
         "would not conserve the Hamiltonian."
     )
+    hamiltonian_not_mechanical = (
+        "hamiltonian(q, p, args) is not of mechanical type 1/2 p^T M(q)^-1 p + V(q) at "
+        "the initial state: it is not quadratic in p, has a term linear in p, or its "
+        "Hessian in p is not symmetric positive definite."
+    )
+    constraints_rank_deficient = (
+        "The constraint matrix A(q) does not have full row rank (a Householder pivot "
+        "vanished), so the constraint distribution has no well-defined frame there. "
+        "The saved states from that point on are not finite."
+    )
+    constraint_violated_initially = (
+        "The initial momentum violates the constraint A(q) dH/dp(q, p) = 0 beyond "
+        "1000 eps; project it first, e.g. with NonholonomicSystem.project_momentum."
+    )
     root_find_not_converged = (
         "The implicit equations of a step were not solved to tolerance within the "
         "method's `root_find_max_steps` iterations (or the iteration diverged). Try a "

@@ -1,26 +1,37 @@
 """What every nhjax method shares: an optimistix root find per step, with tolerances
 that follow the dtype, per-step result codes, and root-finder statistics carried in the
-diffrax solver state."""
+diffrax solver state.
+
+diffrax's loop accepts only its own result codes from a step, so a failure that only an
+nhjax method can name (such as a constraint matrix losing rank) travels in the solver
+state as an `nhjax.RESULTS` code, while the step reports `diffrax.RESULTS.breakdown`;
+`nhjax.integrate` reports the nhjax code."""
 
 from typing import Any, ClassVar
 
 import diffrax
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Int
 
+from .._results import RESULTS
 from .._system import AbstractSystem
 
 
-class RootFindStats(eqx.Module):
-    """The diffrax solver state of an nhjax method: root-finder iterations so far."""
+class MethodState(eqx.Module):
+    """The diffrax solver state of an nhjax method: root-finder iterations so far, and
+    the nhjax code of the step that failed, if one did."""
 
     total_steps: Int[Array, ""]
     max_steps: Int[Array, ""]
+    failure: RESULTS
 
-    def record(self, steps: Int[Array, ""]) -> "RootFindStats":
-        return RootFindStats(self.total_steps + steps, jnp.maximum(self.max_steps, steps))
+    def record(self, steps: Int[Array, ""], failure: RESULTS) -> "MethodState":
+        return MethodState(
+            self.total_steps + steps, jnp.maximum(self.max_steps, steps), failure
+        )
 
 
 def default_root_finder(dtype) -> optx.AbstractRootFinder:
@@ -46,10 +57,10 @@ class AbstractMethod(diffrax.AbstractSolver):
     root_finder: eqx.AbstractVar[optx.AbstractRootFinder | None]
     root_find_max_steps: eqx.AbstractVar[int]
 
-    def init(self, terms, t0, t1, y0, args) -> RootFindStats:
+    def init(self, terms, t0, t1, y0, args) -> MethodState:
         del terms, t0, t1, y0, args
         zero = jnp.array(0, dtype=jnp.int32)
-        return RootFindStats(zero, zero)
+        return MethodState(zero, zero, RESULTS.successful)
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
@@ -80,15 +91,20 @@ class AbstractMethod(diffrax.AbstractSolver):
         return solution.value, result, solution.stats["num_steps"]
 
     @staticmethod
-    def finish(y0, y1, result, steps, solver_state: RootFindStats):
+    def finish(y0, y1, result, steps, solver_state: MethodState, failure=RESULTS.successful):
         """The step's return tuple. A failed or non-finite step returns NaN, never a
-        plausible-looking state, together with its result code."""
-        finite = jnp.all(jnp.isfinite(y1))
+        plausible-looking state, together with its result code. `failure` is a code the
+        method detected itself (see the module docstring)."""
+        result = diffrax.RESULTS.where(
+            failure == RESULTS.successful, result, diffrax.RESULTS.breakdown
+        )
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(y1)]))
         result = diffrax.RESULTS.where(
             (result == diffrax.RESULTS.successful) & ~finite,
             diffrax.RESULTS.nonfinite,
             result,
         )
-        y1 = jnp.where(result == diffrax.RESULTS.successful, y1, jnp.nan)
+        success = result == diffrax.RESULTS.successful
+        y1 = jax.tree.map(lambda leaf: jnp.where(success, leaf, jnp.nan), y1)
         dense_info = dict(y0=y0, y1=y1)
-        return y1, None, dense_info, solver_state.record(steps), result
+        return y1, None, dense_info, solver_state.record(steps, failure), result

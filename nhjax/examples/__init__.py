@@ -3,8 +3,9 @@ equations in adapted coordinates (`.adapted`, a `SkewGradientSystem`), its const
 matrix and frame, maps between (q, p) and adapted coordinates, and initial-state
 helpers."""
 
-from ._adapted import discrete_constraint_residual as discrete_constraint_residual
+from .._adapted import discrete_constraint_residual as discrete_constraint_residual
 from ._chaotic_quartic import chaotic_quartic as chaotic_quartic, ChaoticQuartic as ChaoticQuartic
 from ._chaplygin_sleigh import chaplygin_sleigh as chaplygin_sleigh, ChaplyginSleigh as ChaplyginSleigh
 from ._rolling_disk import rolling_disk as rolling_disk, RollingDisk as RollingDisk
 from ._suslov import suslov as suslov, Suslov as Suslov
+from ._gearbox import gearbox as gearbox, Gearbox as Gearbox

@@ -17,8 +17,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
-from ._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
 
 
 def _split(q):
@@ -76,6 +77,10 @@ def _structure(x, args):
     return adapted_structure(_frame(q), bracket)
 
 
+def _canonical_hamiltonian(q, p, args=None):
+    return 0.5 * p @ p + potential(q, args)
+
+
 def _constraints(q, args=None):
     del args
     n = (q.shape[0] - 1) // 2
@@ -101,6 +106,11 @@ class ChaoticQuartic(eqx.Module):
     def adapted(self) -> SkewGradientSystem:
         """The reduced equations (dynamical) with (fcseq), state size 4n + 1."""
         return SkewGradientSystem(_hamiltonian, _structure)
+
+    @property
+    def canonical(self) -> NonholonomicSystem:
+        """(Lag)-(constraint) in canonical coordinates: $H = \\tfrac12|p|^2 + V(q)$."""
+        return NonholonomicSystem(_canonical_hamiltonian, _constraints)
 
     @staticmethod
     def constraints(q: Float[Array, " 2n+1"], args=None) -> Float[Array, "1 2n+1"]:

@@ -14,8 +14,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
-from ._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
 
 
 def _rotational_inertia(args):
@@ -65,6 +66,10 @@ def _structure(x, args):
     return adapted_structure(_frame(x[:3], args), bracket)
 
 
+def _canonical_hamiltonian(q, p, args):
+    return 0.5 * p @ jnp.linalg.solve(_metric(q, args), p)
+
+
 def _constraints(q, args):
     del args
     theta = q[2]
@@ -88,6 +93,12 @@ class ChaplyginSleigh(eqx.Module):
     def adapted(self) -> SkewGradientSystem:
         """The reduced equations (dynamical) in $(x_1, x_2, \\theta, \\rho_1, \\rho_2)$."""
         return SkewGradientSystem(_hamiltonian, _structure)
+
+    @property
+    def canonical(self) -> NonholonomicSystem:
+        """The sleigh in canonical coordinates, $H = \\tfrac12 p^T M(\\theta)^{-1} p$ with
+        the printed metric."""
+        return NonholonomicSystem(_canonical_hamiltonian, _constraints)
 
     @staticmethod
     def constraints(q: Float[Array, "3"], args) -> Float[Array, "1 3"]:

@@ -13,8 +13,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, ArrayLike
 
+from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
-from ._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
 
 
 def _frame(q, args):
@@ -39,6 +40,10 @@ def _hamiltonian(x, args):
 def _structure(x, args):
     frame = _frame(x[:4], args)
     return adapted_structure(frame, jnp.zeros((2, 2), frame.dtype))
+
+
+def _canonical_hamiltonian(q, p, args):
+    return 0.5 * p @ (p / jnp.diag(_metric(q, args)))
 
 
 def _constraints(q, args):
@@ -67,6 +72,12 @@ class RollingDisk(eqx.Module):
     def adapted(self) -> SkewGradientSystem:
         """The reduced equations (dynamical) in $(q, \\rho)$."""
         return SkewGradientSystem(_hamiltonian, _structure)
+
+    @property
+    def canonical(self) -> NonholonomicSystem:
+        """The disk in canonical coordinates, $H = \\tfrac12 p^T g^{-1} p$, two
+        constraints."""
+        return NonholonomicSystem(_canonical_hamiltonian, _constraints)
 
     @staticmethod
     def constraints(q: Float[Array, "4"], args) -> Float[Array, "2 4"]:

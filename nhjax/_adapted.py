@@ -1,4 +1,4 @@
-r"""Pieces shared by the paper's systems in adapted coordinates (§2.2).
+r"""Adapted coordinates (§2.2): the structure (PiMat) and the momentum maps (ptransform).
 
 With a frame $X(q) = (X_1, \dots, X_m)$ of $\mathcal{D}_q$ (columns, $n \times m$) and the
 metric $g(q)$, the momenta on $\mathcal{D}^*$ are $\rho = X^T p$ (ptildetop) and, for

@@ -1,0 +1,85 @@
+r"""A differentiable Householder QR with explicit sign choices, and the frame of
+$\mathcal{D} = \ker A(q)$ it gives (paper §3.3).
+
+For $A^T \in \mathbb{R}^{n \times k}$ ($k \le n$), step $j$ reflects the column
+$x = R^{(j)}_{j:n,j}$ onto $-s_j|x|e_1$ with the Householder vector
+$\tilde w = x + s_j|x|e_1$, $w = \tilde w/|\tilde w|$, $|\tilde w|^2 = 2(|x|^2 + s_j x_1|x|)$
+(Algorithm 1's first half). Then $A^T = QR$ with $Q = H_1\cdots H_k$, $H_j = I - 2w_jw_j^T$,
+and the last $m = n - k$ columns of $Q$ are an orthonormal basis $X(q)$ of $\ker A(q)$.
+
+The signs $s \in \{+1, -1\}^k$ are explicit. The stable choice $s_j = \mathrm{sign}(x_1)$
+(no cancellation in $\tilde w_1$) is what `householder_signs` returns; passing the same
+$s$ to every later factorisation makes $q \mapsto X(q; s)$ one smooth frame on the
+neighbourhood of the first point where no $\tilde w$ vanishes, so that frames sampled at
+different points of one step belong to the same basis vector fields. Every operation is
+a plain `jax.numpy` operation, so `jax.jacfwd` through `householder_frame` gives
+$\partial X/\partial q$: this replaces the paper's Algorithm 1 (its second half is the
+forward-mode derivative of its first).
+"""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+def _column_norm(x):
+    """|x|, with finite derivatives at x = 0 (where the factorisation breaks down and
+    the caller reports rank deficiency)."""
+    square = x @ x
+    safe = jnp.where(square > 0, square, 1.0)
+    return jnp.where(square > 0, jnp.sqrt(safe), 0.0)
+
+
+def _reflectors(a_t, signs):
+    """The unit Householder vectors (as rows, zero above their pivot), R's diagonal
+    magnitudes |x_j|, and the signs used."""
+    n, k = a_t.shape
+    r = a_t
+    vectors, pivots, used = [], [], []
+    for j in range(k):
+        x = r[j:, j]
+        norm = _column_norm(x)
+        sign = jnp.where(x[0] >= 0, 1.0, -1.0).astype(a_t.dtype) if signs is None else signs[j]
+        length_sq = 2 * (norm**2 + sign * x[0] * norm)
+        length = jnp.sqrt(jnp.where(length_sq > 0, length_sq, 1.0))
+        w = x.at[0].add(sign * norm) / length
+        r = r.at[j:, :].add(-2 * jnp.outer(w, w @ r[j:, :]))
+        vectors.append(jnp.concatenate([jnp.zeros((j,), a_t.dtype), w]))
+        pivots.append(jnp.sqrt(jnp.maximum(length_sq, 0.0) / 2))
+        used.append(sign)
+    return vectors, r, jnp.stack(pivots), jnp.stack(used)
+
+
+def householder_signs(a_t: Float[Array, "n k"]) -> Float[Array, " k"]:
+    """The stable sign choices $s_j = \\mathrm{sign}(x_1)$ for the factorisation of
+    `a_t` ($+1$ where $x_1 = 0$)."""
+    return _reflectors(a_t, None)[3]
+
+
+def householder_qr(
+    a_t: Float[Array, "n k"], signs: Float[Array, " k"] | None = None
+) -> tuple[Float[Array, "n n"], Float[Array, "n k"]]:
+    """$A^T = QR$ with $Q = H_1 \\cdots H_k$ orthogonal and $R$ upper triangular,
+    $R_{jj} = -s_j|x_j|$. `signs=None` uses `householder_signs(a_t)`."""
+    vectors, r, _, _ = _reflectors(a_t, signs)
+    q = jnp.eye(a_t.shape[0], dtype=a_t.dtype)
+    for w in reversed(vectors):
+        q = q - 2 * jnp.outer(w, w @ q)
+    return q, r
+
+
+def householder_frame(
+    a_t: Float[Array, "n k"], signs: Float[Array, " k"]
+) -> tuple[Float[Array, "n m"], Float[Array, " k"]]:
+    r"""$X = Q_{:, k:}$, the orthonormal basis of $\ker A$ from the factorisation with
+    sign choices `signs`, and $\rho_{\min} = \min_j |\tilde w_j|/\sqrt2$, which is at
+    least $\min_j |R_{jj}|$: a small value relative to $|A|$ means that $A$ has (nearly)
+    lost rank, or that `signs` no longer suit this point.
+
+    Only the last $m$ columns are formed: $X = H_1 \cdots H_k [0; I_m]$.
+    """
+    n, k = a_t.shape
+    vectors, _, pivots, _ = _reflectors(a_t, signs)
+    frame = jnp.eye(n, n - k, -k, dtype=a_t.dtype)
+    for w in reversed(vectors):
+        frame = frame - 2 * jnp.outer(w, w @ frame)
+    return frame, jnp.min(pivots)

@@ -1,0 +1,290 @@
+r"""Nonholonomic systems in canonical coordinates, eq. (eq:HamEq), and their reduced
+form on $\mathcal{D}^*$ for a Householder frame, eqs. (PiMat), (skewMat), (eq:Htgrad).
+
+Notation: state $(q, p) \in \mathbb{R}^n \times \mathbb{R}^n$,
+$H = \tfrac12 p^T K(q) p + V(q)$ with $K = M^{-1} = \partial^2 H/\partial p^2$,
+$v = \partial H/\partial p = Kp$, constraints $A(q) v = 0$ with $A$ of shape $(k, n)$,
+$m = n - k$.
+"""
+
+from collections.abc import Callable
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._householder import householder_frame, householder_signs
+from ._results import RESULTS, first_failure
+from ._adapted import adapted_structure
+from ._system import AbstractSystem, SkewGradientSystem, _require_floating_vector, _require_scalar
+
+
+Derivative = Literal["autodiff", "central_difference"]
+
+# Multiples of eps in the initial-state checks: loose enough for states built in
+# floating point, tight enough that what passes is preserved to the same level.
+_CHECK_TOLERANCE = 1000
+
+
+def _tolerance(dtype, scale):
+    return _CHECK_TOLERANCE * jnp.finfo(dtype).eps * (1 + scale)
+
+
+class NonholonomicSystem(AbstractSystem):
+    r"""A mechanical system with linear velocity constraints, eq. (eq:HamEq):
+
+    $$\dot q = \frac{\partial H}{\partial p}, \qquad
+      \dot p = -\frac{\partial H}{\partial q} + A(q)^T\lambda, \qquad
+      A(q)\frac{\partial H}{\partial p} = 0.$$
+
+    **Arguments:**
+
+    - `hamiltonian`: `hamiltonian(q, p, args) -> scalar`, of mechanical type
+        $H = \tfrac12 p^T M(q)^{-1} p + V(q)$ with $M$ symmetric positive definite.
+        The metric comes from autodiff: $M^{-1} = \partial^2 H/\partial p^2$.
+    - `constraints`: `constraints(q, args) -> (k, n)` matrix $A(q)$ of full rank $k < n$.
+
+    The state is the tuple `(q, p)`. As a diffrax term its vector field is the index-1
+    ODE with the multiplier eliminated (`multiplier`), so any diffrax solver integrates
+    it; nhjax's methods use the functions themselves.
+
+    `nhjax.integrate` checks the initial state: finite; $H$ of mechanical type there
+    (quadratic in $p$, no term linear in $p$, $M^{-1}$ positive definite, probed along
+    $p_0$ and two fixed directions); $A(q_0)$ of full rank; and
+    $|A(q_0) v_0| \le 1000\epsilon(1 + |A||v_0|)$ (max norms). `project_momentum` puts a
+    momentum on the constraint.
+    """
+
+    hamiltonian: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, ""]]
+    constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]]
+
+    # Mechanics.
+
+    def velocity(self, q, p, args) -> Float[Array, " n"]:
+        """$v = \\partial H/\\partial p$."""
+        return jax.grad(self.hamiltonian, argnums=1)(q, p, args)
+
+    def inverse_metric(self, q, args) -> Float[Array, "n n"]:
+        """$K(q) = M(q)^{-1} = \\partial^2 H/\\partial p^2$."""
+        zero = jnp.zeros_like(q)
+        return jax.jacfwd(self.velocity, argnums=1)(q, zero, args)
+
+    def metric(self, q, args) -> Float[Array, "n n"]:
+        """$M(q)$, the inverse of `inverse_metric`."""
+        inverse = self.inverse_metric(q, args)
+        return jnp.linalg.solve(inverse, jnp.eye(q.shape[0], dtype=inverse.dtype))
+
+    def constraint_residual(self, y, args) -> Float[Array, " k"]:
+        """$A(q)\\,\\partial H/\\partial p$, zero on the constraint."""
+        q, p = y
+        return self.constraints(q, args) @ self.velocity(q, p, args)
+
+    def multiplier(self, y, args) -> Float[Array, " k"]:
+        r"""$\lambda$ from $\tfrac{d}{dt}[A(q)v] = 0$:
+        $A K A^T\lambda = A K \partial_q H - \partial_q(Av)[v]$ (SPEC §4)."""
+        q, p = y
+        a = self.constraints(q, args)
+        v = self.velocity(q, p, args)
+        force = jax.grad(self.hamiltonian, argnums=0)(q, p, args)
+        _, drift = jax.jvp(lambda x: self.constraints(x, args) @ self.velocity(x, p, args), (q,), (v,))
+        ka_t = self.inverse_metric(q, args) @ a.T
+        return jnp.linalg.solve(a @ ka_t, ka_t.T @ force - drift)
+
+    def vf(self, t, y, args):
+        del t
+        q, p = y
+        force = -jax.grad(self.hamiltonian, argnums=0)(q, p, args)
+        reaction = self.constraints(q, args).T @ self.multiplier(y, args)
+        return self.velocity(q, p, args), force + reaction
+
+    def energy(self, y, args):
+        return self.hamiltonian(*y, args)
+
+    def observables(self, y, args):
+        return {"energy": self.energy(y, args), "constraint": self.constraint_residual(y, args)}
+
+    def project_momentum(self, q, p, args=None) -> Float[Array, " n"]:
+        r"""The momentum closest to `p` in the kinetic-energy norm that satisfies the
+        constraint: $p - A^T(AKA^T)^{-1}AKp$, so that $A K p' = 0$."""
+        a = self.constraints(q, args)
+        ka_t = self.inverse_metric(q, args) @ a.T
+        return p - a.T @ jnp.linalg.solve(a @ ka_t, ka_t.T @ p)
+
+    # The reduced system on D*.
+
+    def frame_signs(self, q, args) -> Float[Array, " k"]:
+        """The Householder sign choices at `q` (see `nhjax._householder`)."""
+        return householder_signs(self.constraints(q, args).T)
+
+    def frame(self, q, args, signs) -> Float[Array, "n m"]:
+        """$X(q; s)$: orthonormal columns spanning $\\mathcal{D}_q = \\ker A(q)$."""
+        return householder_frame(self.constraints(q, args).T, signs)[0]
+
+    def has_full_rank(self, q, args, signs) -> Bool[Array, ""]:
+        """Whether the smallest Householder pivot exceeds $1000\\epsilon(1 + \\max|A|)$:
+        false when $A(q)$ has lost rank (or `signs` do not suit `q`)."""
+        a = self.constraints(q, args)
+        pivot = householder_frame(a.T, signs)[1]
+        return pivot > _tolerance(a.dtype, jnp.max(jnp.abs(a)))
+
+    def momentum(self, q, rho, args, signs) -> Float[Array, " n"]:
+        r"""$p = M X (X^T M X)^{-1}\rho$, eq. (ptoptilde): the momentum on the constraint
+        with $X^T p = \rho$."""
+        frame = self.frame(q, args, signs)
+        weighted = jnp.linalg.solve(self.inverse_metric(q, args), frame)
+        return weighted @ jnp.linalg.solve(frame.T @ weighted, rho)
+
+    def to_reduced(self, y, args, signs) -> Float[Array, " n+m"]:
+        r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
+        q, p = y
+        return jnp.concatenate([q, self.frame(q, args, signs).T @ p])
+
+    def from_reduced(self, zeta, args, signs) -> tuple[Array, Array]:
+        """$(q, p)$ from $\\zeta = (q, \\rho)$, eq. (ptoptilde)."""
+        q, rho = _split_reduced(zeta, signs)
+        return q, self.momentum(q, rho, args, signs)
+
+    def reduced(
+        self, signs, derivative: Derivative = "autodiff", difference_step=None
+    ) -> SkewGradientSystem:
+        """The reduced system (dynamical) on $\\zeta = (q, \\rho)$ for the frame with
+        sign choices `signs`, as a `SkewGradientSystem` a user can inspect or integrate:
+        its Hamiltonian is $\\mathcal{H}(q, \\rho) = H(q, p(q, \\rho))$ and its structure
+        is (PiMat) with the block (skewMat). See `ReducedSystem`."""
+        reduced = ReducedSystem(self, signs, derivative, difference_step)
+        return SkewGradientSystem(reduced.hamiltonian, reduced.structure)
+
+    # Validation.
+
+    def check_shapes(self, y0, args):
+        if not (isinstance(y0, tuple) and len(y0) == 2):
+            raise ValueError(
+                "The state of a NonholonomicSystem is the tuple (q, p), got "
+                f"{type(y0).__name__}."
+            )
+        q, p = y0
+        _require_floating_vector("q", q)
+        _require_floating_vector("p", p)
+        if jnp.shape(q) != jnp.shape(p):
+            raise ValueError(f"q and p must have the same shape, got {jnp.shape(q)} and {jnp.shape(p)}.")
+        (n,) = jnp.shape(q)
+        _require_scalar("hamiltonian(q, p, args)", jax.eval_shape(self.hamiltonian, q, p, args))
+        a = jax.eval_shape(self.constraints, q, args)
+        if len(a.shape) != 2 or a.shape[1] != n or not 1 <= a.shape[0] < n:
+            raise ValueError(
+                f"constraints(q, args) must return a (k, {n}) matrix with 1 <= k < {n} for "
+                f"q of shape ({n},), got shape {a.shape}."
+            )
+
+    def initial_state_result(self, y0, args):
+        q, p = y0
+        finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p))
+        a = self.constraints(q, args)
+        v = self.velocity(q, p, args)
+        violation = jnp.max(jnp.abs(a @ v))
+        satisfied = violation <= _tolerance(q.dtype, jnp.max(jnp.abs(a)) * jnp.max(jnp.abs(v)))
+        full_rank = self.has_full_rank(q, args, self.frame_signs(q, args))
+        return first_failure(
+            RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_initial_state),
+            RESULTS.where(self._is_mechanical(q, p, args), RESULTS.successful, RESULTS.hamiltonian_not_mechanical),
+            RESULTS.where(full_rank, RESULTS.successful, RESULTS.constraints_rank_deficient),
+            RESULTS.where(satisfied, RESULTS.successful, RESULTS.constraint_violated_initially),
+        )
+
+    def _is_mechanical(self, q, p, args):
+        """$H(q, u) = H(q, 0) + \\tfrac12 u^T K u$ along probes, $\\partial_p H(q, 0) = 0$
+        and $K$ positive definite."""
+        n = q.shape[0]
+        inverse = self.inverse_metric(q, args)
+        base = self.hamiltonian(q, jnp.zeros_like(p), args)
+        probes = jnp.stack([p, jnp.ones_like(p), jnp.cos(jnp.arange(n, dtype=p.dtype))])
+
+        def defect(u):
+            quadratic = 0.5 * u @ inverse @ u
+            value = self.hamiltonian(q, u, args)
+            return jnp.abs(value - base - quadratic) <= _tolerance(
+                q.dtype, jnp.abs(value) + jnp.abs(base) + jnp.abs(quadratic)
+            )
+
+        quadratic = jnp.all(jax.vmap(defect)(probes))
+        linear_term = self.velocity(q, jnp.zeros_like(p), args)
+        no_linear = jnp.max(jnp.abs(linear_term)) <= _tolerance(q.dtype, jnp.max(jnp.abs(inverse)))
+        symmetric = jnp.max(jnp.abs(inverse - inverse.T)) <= _tolerance(q.dtype, jnp.max(jnp.abs(inverse)))
+        positive = jnp.all(jnp.isfinite(jnp.linalg.cholesky(inverse)))
+        return quadratic & no_linear & symmetric & positive
+
+
+def _split_reduced(zeta, signs):
+    """$(q, \\rho)$ from $\\zeta$ of size $n + m = 2n - k$."""
+    n = (zeta.shape[0] + signs.shape[0]) // 2
+    return zeta[:n], zeta[n:]
+
+
+class ReducedSystem(eqx.Module):
+    r"""The reduced equations (dynamical) of a `NonholonomicSystem` for the Householder
+    frame $X(q; s)$, with everything evaluated from $H$ and $A$ alone (§3.3):
+
+    - $\mathcal{H}(q, \rho) = H(q, p)$, $p = p(q, \rho)$ by (ptoptilde);
+    - $\partial\mathcal{H}/\partial\rho = y = (X^TMX)^{-1}\rho$ and
+      $\partial\mathcal{H}/\partial q^i = \partial_{q^i}H(q, p) - p^T\,\partial_iX\,y$,
+      eq. (eq:Htgrad) (the $\partial g$ and $\partial V$ terms are $\partial_q H$ at
+      fixed $p$);
+    - $\Pi = \begin{pmatrix} 0 & X \\ -X^T & B\end{pmatrix}$ with
+      $B_{ab} = p^T(\partial X_a[X_b] - \partial X_b[X_a])$, eqs. (PiMat), (skewMat).
+
+    $\partial X/\partial q$ is `"autodiff"` (`jax.jacfwd` through the QR) or
+    `"central_difference"`: $(X(q + \epsilon e_i) - X(q - \epsilon e_i))/2\epsilon$, the
+    paper's finite-difference remark, with $\epsilon$ = `difference_step` (GONZALEZ-R
+    passes $|h|$, as the paper does, so the method stays second order).
+    """
+
+    system: NonholonomicSystem
+    signs: Float[Array, " k"]
+    derivative: Derivative = eqx.field(default="autodiff", static=True)
+    difference_step: Any = None
+
+    def __check_init__(self):
+        if self.derivative not in ("autodiff", "central_difference"):
+            raise ValueError(
+                'derivative must be "autodiff" or "central_difference", got '
+                f"{self.derivative!r}."
+            )
+        if self.derivative == "central_difference" and self.difference_step is None:
+            raise ValueError('derivative="central_difference" needs a difference_step.')
+
+    def hamiltonian(self, zeta, args) -> Float[Array, ""]:
+        q, p = self.system.from_reduced(zeta, args, self.signs)
+        return self.system.hamiltonian(q, p, args)
+
+    def _frame_and_derivative(self, q, args):
+        frame = lambda x: self.system.frame(x, args, self.signs)  # noqa: E731
+        if self.derivative == "autodiff":
+            derivative, value = jax.jacfwd(lambda x: (frame(x), frame(x)), has_aux=True)(q)
+            return value, derivative
+        step = jnp.asarray(self.difference_step, q.dtype)
+        offsets = step * jnp.eye(q.shape[0], dtype=q.dtype)
+        differences = jax.vmap(lambda e: (frame(q + e) - frame(q - e)) / (2 * step))(offsets)
+        return frame(q), jnp.moveaxis(differences, 0, -1)
+
+    def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
+        r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
+        q, rho = _split_reduced(zeta, self.signs)
+        frame, derivative = self._frame_and_derivative(q, args)
+        weighted = jnp.linalg.solve(self.system.inverse_metric(q, args), frame)
+        y = jnp.linalg.solve(frame.T @ weighted, rho)
+        p = weighted @ y
+        along_frame = jnp.einsum("j,jai,ib->ab", p, derivative, frame)
+        structure = adapted_structure(frame, along_frame - along_frame.T)
+        grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - jnp.einsum(
+            "j,jai,a->i", p, derivative, y
+        )
+        return structure, jnp.concatenate([grad_q, y])
+
+    def structure(self, zeta, args) -> Float[Array, "N N"]:
+        return self.structure_and_gradient(zeta, args)[0]
+
+    def vf(self, zeta, args) -> Float[Array, " N"]:
+        structure, gradient = self.structure_and_gradient(zeta, args)
+        return structure @ gradient

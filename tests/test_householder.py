@@ -1,0 +1,88 @@
+"""The differentiable Householder QR and the frame of ker A it gives."""
+
+import hypothesis
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from nhjax._householder import householder_frame, householder_qr, householder_signs
+
+
+def _matrix(seed, n, k):
+    return jax.random.normal(jax.random.key(seed), (n, k), dtype=jnp.float64)
+
+
+@jax.jit
+def _frame_checks(a_t):
+    signs = householder_signs(a_t)
+    q, r = householder_qr(a_t, signs)
+    frame, pivot = householder_frame(a_t, signs)
+    return q, r, frame, pivot, signs
+
+
+@hypothesis.settings(deadline=None, max_examples=40)
+@hypothesis.given(seed=st.integers(0, 2**31 - 1), shape=st.sampled_from([(3, 1), (4, 2), (7, 1), (6, 3), (5, 4)]))
+def test_factorisation_and_frame(seed, shape):
+    n, k = shape
+    a_t = _matrix(seed, n, k)
+    q, r, frame, pivot, signs = _frame_checks(a_t)
+    np.testing.assert_allclose(q @ r, a_t, atol=1e-14)
+    np.testing.assert_allclose(q.T @ q, np.eye(n), atol=1e-14)
+    np.testing.assert_allclose(np.tril(r[:k], -1), 0.0, atol=1e-14)
+    np.testing.assert_allclose(r[k:], 0.0, atol=1e-14)
+    np.testing.assert_allclose(frame, q[:, k:], atol=1e-15)
+    np.testing.assert_allclose(a_t.T @ frame, 0.0, atol=1e-14)  # A X = 0
+    np.testing.assert_allclose(frame.T @ frame, np.eye(n - k), atol=1e-14)
+    np.testing.assert_allclose(np.diag(r[:k]), -signs * np.abs(np.diag(r[:k])), atol=0)
+    assert float(pivot) >= float(np.min(np.abs(np.diag(r[:k])))) * (1 - 1e-14)
+
+
+def _constraint_matrix(q):
+    """A smooth (2, 4) constraint matrix, full rank near the test points."""
+    return jnp.stack(
+        [
+            jnp.array([1.0, 0.0, 0.0, 0.0]) + jnp.stack([0.0 * q[0], jnp.sin(q[2]), q[0] * q[1], 0.0 * q[0]]),
+            jnp.stack([jnp.cos(q[3]), 1.0 + 0.0 * q[0], 0.0 * q[0], q[1] ** 2]),
+        ]
+    )
+
+
+def test_frame_derivative_by_autodiff_matches_central_differences():
+    q = jnp.array([0.3, -0.7, 1.1, 0.4])
+    signs = householder_signs(_constraint_matrix(q).T)
+    frame = lambda x: householder_frame(_constraint_matrix(x).T, signs)[0]  # noqa: E731
+    forward = jax.jacfwd(frame)(q)
+    reverse = jax.jacrev(frame)(q)
+    step = 1e-5
+    central = jnp.stack(
+        [(frame(q + step * e) - frame(q - step * e)) / (2 * step) for e in jnp.eye(4)], axis=-1
+    )
+    np.testing.assert_allclose(forward, central, atol=1e-9)
+    np.testing.assert_allclose(forward, reverse, atol=1e-14)
+
+
+def test_fixed_signs_give_one_smooth_frame_nearby():
+    """With s fixed, X(q + t d; s) varies by O(t); with the signs recomputed at a point
+    where a pivot's sign flips, the frame jumps."""
+    # The first column's leading entry is sin(theta): its stable sign flips at theta = 0.
+    constraints = lambda theta: jnp.stack([jnp.sin(theta), jnp.cos(theta), 0.0 * theta])[:, None]  # noqa: E731
+    signs = householder_signs(constraints(jnp.array(1e-3)))
+    frame = lambda theta, s: householder_frame(constraints(theta), s)[0]  # noqa: E731
+    for t in [1e-2, 1e-4, 1e-6]:
+        change = jnp.max(jnp.abs(frame(jnp.array(1e-3 - t), signs) - frame(jnp.array(1e-3), signs)))
+        assert float(change) <= 2 * t
+    other_side = jnp.array(-1e-3)
+    jump = frame(other_side, householder_signs(constraints(other_side))) - frame(jnp.array(1e-3), signs)
+    assert float(jnp.max(jnp.abs(jump))) > 0.5
+
+
+@pytest.mark.parametrize("dtype, tolerance", [(jnp.float32, 1e-6), (jnp.float64, 1e-15)])
+def test_rank_loss_shows_in_the_pivot(dtype, tolerance):
+    full = jnp.array([[1.0, 0.0, 2.0], [0.0, 1.0, 1.0]], dtype=dtype).T
+    parallel = jnp.array([[1.0, 0.0, 2.0], [2.0, 0.0, 4.0]], dtype=dtype).T
+    _, pivot_full = householder_frame(full, householder_signs(full))
+    _, pivot_parallel = householder_frame(parallel, householder_signs(parallel))
+    assert float(pivot_full) > 0.5
+    assert float(pivot_parallel) <= 10 * tolerance
