@@ -136,6 +136,7 @@ def gonzalez_correction(
     args: Any = None,
     *,
     taylor: bool = True,
+    value: Float[Array, ""] | None = None,
 ) -> Float[Array, " N"]:
     r"""$g + \frac{f(x') - f(x) - g^T\delta}{|\delta|^2}\delta$ for a given midpoint
     gradient $g$: (gonzales) when $g = \nabla f(\bar x)$.
@@ -144,6 +145,8 @@ def gonzalez_correction(
     and nearly equal points use the Taylor form of `gonzalez`. With `taylor=False` (for
     an approximate $g$, as in GONZALEZ-R with finite differences, where no expansion
     applies) the printed formula is used down to $\delta = 0$, where the value is $g$.
+    `value`, if given, stands for $f(x)$: a caller that knows the energy it must
+    conserve more accurately than $f(x)$ evaluates it passes it here.
     """
     delta = x1 - x
     midpoint = 0.5 * (x + x1)
@@ -153,7 +156,8 @@ def gonzalez_correction(
         near = jnp.all(delta == 0)
 
     def printed():
-        numerator = f(x1, args) - f(x, args) - gradient @ delta
+        start = f(x, args) if value is None else value
+        numerator = f(x1, args) - start - gradient @ delta
         return (numerator / jnp.where(near, 1.0, delta @ delta)) * delta
 
     def taylor_form():

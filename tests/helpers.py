@@ -67,6 +67,15 @@ def reference_final_state(system, y0, t1, args=None):
     return jax.tree.map(lambda y: y[-1], solution.ys)
 
 
+def step_there_and_back(system, method, y0, h, args=None):
+    """One step of `method` with h, then one with -h (diffrax's step from t0 = h to
+    t1 = 0), returning (the state after both, the diffrax result codes)."""
+    state = method.init(system, 0.0, h, y0, args)
+    y1, _, _, state, there = method.step(system, 0.0, h, y0, args, state, False)
+    back, _, _, _, again = method.step(system, h, 0.0, y1, args, state, False)
+    return back, (there, again)
+
+
 def final_state_errors(system, method, y0, t1, step_sizes, reference, args=None, observe=None):
     """max |observe(y_N) - reference| after integrating to t1 with each step size;
     states may be tuples such as (q, p)."""

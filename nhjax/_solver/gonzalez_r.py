@@ -73,7 +73,7 @@ class GonzalezR(AbstractMethod):
         return ReducedSystem(system, signs, self.derivative, step)
 
     def _residual(self, u, data):
-        reduced, zeta, h, scale, args = data
+        reduced, zeta, energy, h, scale, args = data
         zeta1 = zeta + scale * u
         structure, gradient = reduced.structure_and_gradient(0.5 * (zeta + zeta1), args)
         discrete_gradient = gonzalez_correction(
@@ -83,6 +83,7 @@ class GonzalezR(AbstractMethod):
             zeta1,
             args,
             taylor=self.derivative == "autodiff",
+            value=energy,
         )
         return u - h * (structure @ discrete_gradient) / scale
 
@@ -95,7 +96,12 @@ class GonzalezR(AbstractMethod):
         zeta = system.to_reduced(y0, args, signs)
         scale = lax.stop_gradient(1 + jnp.max(jnp.abs(zeta)))
         guess = h * reduced.vf(zeta, args) / scale
-        u, result, steps = self.solve(self._residual, guess, (reduced, zeta, h, scale, args))
+        # The step conserves H(q, p) itself rather than its reduced value H(q, p(q, rho)),
+        # which differs by the roundoff of the map p -> rho -> p: that roundoff would
+        # otherwise accumulate, with a bias, over many steps.
+        energy = system.energy(y0, args)
+        data = (reduced, zeta, energy, h, scale, args)
+        u, result, steps = self.solve(self._residual, guess, data)
         zeta1 = zeta + scale * u
         y1 = system.from_reduced(zeta1, args, signs)
         full_rank = system.has_full_rank(q, args, signs) & system.has_full_rank(

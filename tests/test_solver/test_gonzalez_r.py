@@ -1,0 +1,181 @@
+"""GONZALEZ-R: energy and constraint to roundoff, order 2 against independent routes,
+symmetry, the finite-difference option, and failures."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax as nh
+
+from ..helpers import (
+    final_state_errors,
+    fitted_order,
+    reference_final_state,
+    relative_energy_error,
+    step_there_and_back,
+)
+
+
+GEARBOX = nh.examples.gearbox()
+QUARTIC = nh.examples.chaotic_quartic()
+SLEIGH = nh.examples.chaplygin_sleigh()
+DISK = nh.examples.rolling_disk()
+METHOD = nh.GonzalezR()
+FINITE_DIFFERENCE = nh.GonzalezR(derivative="central_difference")
+STEP_SIZES = (0.2, 0.1, 0.05)
+
+
+def _starts():
+    return {
+        "gearbox, k = 1": (GEARBOX, GEARBOX.random_initial_state(jax.random.key(0))),
+        "quartic, k = 1, n = 7": (QUARTIC, QUARTIC.from_adapted(QUARTIC.initial_state(0.9))),
+        "sleigh, q-dependent metric": (SLEIGH, SLEIGH.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]))),
+        "disk, k = 2": (DISK, DISK.from_adapted(DISK.initial_state(theta=0.2, rho1=1.0, rho2=0.5))),
+    }
+
+
+@pytest.mark.parametrize("name", list(_starts()))
+def test_energy_and_constraint_to_roundoff_over_ten_thousand_steps(name):
+    example, y0 = _starts()[name]
+    solution = nh.integrate(example.canonical, METHOD, y0, 0.1, 10_000, args=example.args, save_every=100)
+    assert solution.result == nh.RESULTS.successful
+    assert relative_energy_error(solution) <= 1e-13
+    assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-13
+
+
+@pytest.mark.parametrize("name", ["gearbox, k = 1", "quartic, k = 1, n = 7"])
+def test_second_order_against_the_index1_reference(name):
+    example, y0 = _starts()[name]
+    t1 = 5.0
+    reference = reference_final_state(example.canonical, y0, t1, example.args)
+    errors = final_state_errors(example.canonical, METHOD, y0, t1, STEP_SIZES, reference, args=example.args)
+    assert 1.9 <= fitted_order(STEP_SIZES, errors) <= 2.1, errors
+
+
+def _canonical_and_adapted_end_states(example, y0, h, n):
+    x0 = example.to_adapted(*y0, example.args)
+    canonical = nh.integrate(example.canonical, METHOD, y0, h, n, args=example.args, save_every=n)
+    adapted = nh.integrate(example.adapted, nh.DiscreteGradient(), x0, h, n, args=example.args, save_every=n)
+    q, p = example.from_adapted(adapted.ys[-1], example.args)
+    return max(
+        float(jnp.max(jnp.abs(canonical.ys[0][-1] - q))), float(jnp.max(jnp.abs(canonical.ys[1][-1] - p)))
+    )
+
+
+def test_agrees_with_the_analytic_reduced_method_at_order_two():
+    """On the quartic, GONZALEZ-R on the canonical system and DiscreteGradient on the
+    paper's analytic adapted form (fcseq) are different second-order discretisations of
+    one flow (different frames of D), so their end states differ by O(h^2)."""
+    example, y0 = _starts()["quartic, k = 1, n = 7"]
+    t1 = 5.0
+    differences = [_canonical_and_adapted_end_states(example, y0, h, round(t1 / h)) for h in STEP_SIZES]
+    assert 1.8 <= fitted_order(STEP_SIZES, differences) <= 2.2, differences
+
+
+@pytest.mark.parametrize("name", ["sleigh, q-dependent metric", "disk, k = 2"])
+def test_equals_the_analytic_reduced_method_where_the_reduced_energy_is_quadratic(name):
+    """For the sleigh and the disk, V = 0 and the frame's Gram matrix X^T M X is constant
+    in both frames, so the reduced Hamiltonian is a quadratic form in rho alone. The
+    Gonzalez discrete gradient of a quadratic is its midpoint gradient, and the
+    midpoint-gradient method is covariant under linear changes of the rho coordinates:
+    the two routes give the same trajectory, to roundoff."""
+    example, y0 = _starts()[name]
+    assert _canonical_and_adapted_end_states(example, y0, 0.1, 200) <= 1e-12
+
+
+def test_one_step_is_the_discrete_gradient_method_on_the_reduced_system():
+    """Within one step the sign choices are fixed, so GONZALEZ-R is DiscreteGradient
+    (autodiff gradient of H(q, p(q, rho))) on `system.reduced(signs)`, mapped back."""
+    example, y0 = _starts()["sleigh, q-dependent metric"]
+    system, args = example.canonical, example.args
+    signs = system.frame_signs(y0[0], args)
+    zeta = system.to_reduced(y0, args, signs)
+    reduced = nh.integrate(system.reduced(signs), nh.DiscreteGradient(), zeta, 0.1, 1, args=args)
+    direct = nh.integrate(system, METHOD, y0, 0.1, 1, args=args)
+    q, p = system.from_reduced(reduced.ys[-1], args, signs)
+    np.testing.assert_allclose(direct.ys[0][-1], q, atol=1e-15)
+    np.testing.assert_allclose(direct.ys[1][-1], p, atol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["sleigh, q-dependent metric", "disk, k = 2"])
+def test_time_symmetric(name):
+    """A step with h, then one with -h, returns to the start (the frame's signs are the
+    same at both ends here)."""
+    example, y0 = _starts()[name]
+    back, results = step_there_and_back(example.canonical, METHOD, y0, 0.2, example.args)
+    assert all(result == diffrax.RESULTS.successful for result in results)
+    np.testing.assert_allclose(back[0], y0[0], atol=1e-14)
+    np.testing.assert_allclose(back[1], y0[1], atol=1e-14)
+
+
+def test_finite_difference_option_agrees_at_order_two():
+    example, y0 = _starts()["gearbox, k = 1"]
+    t1 = 5.0
+    differences = []
+    for h in STEP_SIZES:
+        n = round(t1 / h)
+        exact = nh.integrate(example.canonical, METHOD, y0, h, n, save_every=n)
+        finite = nh.integrate(example.canonical, FINITE_DIFFERENCE, y0, h, n, save_every=n)
+        differences.append(float(jnp.max(jnp.abs(exact.ys[1][-1] - finite.ys[1][-1]))))
+    assert 1.8 <= fitted_order(STEP_SIZES, differences) <= 2.2, differences
+    long = nh.integrate(example.canonical, FINITE_DIFFERENCE, y0, 0.1, 10_000, save_every=100)
+    assert relative_energy_error(long) <= 1e-13
+    assert float(jnp.max(jnp.abs(long.constraint))) <= 1e-13
+
+
+def test_gearbox_partial_energies_drift_at_order_two_while_the_total_is_exact():
+    """H3 (the pendulum) and H - H3 are each conserved by the exact flow (SPEC §3); the
+    discrete gradient of the total mixes them, at O(h^2)."""
+    y0 = GEARBOX.random_initial_state(jax.random.key(0))
+    drifts = []
+    for h in STEP_SIZES:
+        n = round(20.0 / h)
+        solution = nh.integrate(GEARBOX.canonical, METHOD, y0, h, n)
+        pendulum = GEARBOX.pendulum_energy(*solution.ys)
+        drifts.append(float(jnp.max(jnp.abs(pendulum - pendulum[0]))))
+        assert relative_energy_error(solution) <= 1e-13
+        np.testing.assert_allclose(solution.energy - pendulum, solution.energy[0] - pendulum[0], atol=drifts[-1] * 1.001)
+    assert drifts[-1] > 1e-8  # visibly not conserved ...
+    assert 1.8 <= fitted_order(STEP_SIZES, drifts) <= 2.2, drifts  # ... but at order 2
+
+
+def test_constraint_losing_rank_is_reported_per_trajectory():
+    """A(q) = (1 - q3)(1, 1/2, 0) loses rank at q3 = 1. q3 is a free rotation, so
+    q3 = q3(0) + t p3 to roundoff, and from q3(0) = 1/2 with p3 = 1 and h = 0.1 the fifth
+    step lands on q3 = 1: that trajectory fails with its own code; the other one in the
+    batch is untouched."""
+    def hamiltonian(q, p, args):
+        return 0.5 * (p @ p + q[0] ** 2 + q[1] ** 2)
+
+    def constraints(q, args):
+        return (1.0 - q[2]) * jnp.array([[1.0, 0.5, 0.0]])
+
+    system = nh.NonholonomicSystem(hamiltonian, constraints)
+
+    def run(q3):
+        q = jnp.array([0.1, 0.2, q3])
+        p = system.project_momentum(q, jnp.array([0.5, -0.5, 1.0]))
+        return nh.integrate(system, METHOD, (q, p), 0.1, 20, throw=False)
+
+    batch = jax.vmap(run)(jnp.array([0.5, -3.0]))
+    assert bool((batch.result == nh.RESULTS.constraints_rank_deficient)[0])
+    assert bool((batch.result == nh.RESULTS.successful)[1])
+    assert bool(jnp.all(jnp.isfinite(batch.ys[0][0, :5])))
+    assert not bool(jnp.any(jnp.isfinite(batch.ys[0][0, 5:])))
+    single = run(-3.0)
+    np.testing.assert_allclose(batch.ys[1][1], single.ys[1], atol=1e-14)
+    start = jax.tree.map(lambda y: y[0, 0], batch.ys)
+    with pytest.raises(Exception, match="full row rank"):
+        nh.integrate(system, METHOD, start, 0.1, 20)
+
+
+def test_float32():
+    example, y0 = _starts()["gearbox, k = 1"]
+    y0 = jax.tree.map(lambda y: y.astype(jnp.float32), y0)
+    solution = nh.integrate(example.canonical, METHOD, y0, 0.1, 1000, save_every=10)
+    assert solution.ys[0].dtype == jnp.float32
+    eps = float(jnp.finfo(jnp.float32).eps)
+    assert relative_energy_error(solution) <= 100 * eps
+    assert float(jnp.max(jnp.abs(solution.constraint))) <= 100 * eps
