@@ -6,26 +6,17 @@ Figures are medians over repeats; results go to benchmarks/results/discrete_grad
 """
 
 import argparse
-import json
 import pathlib
-import platform
 import statistics
-import time
 
 import jax
 
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 
 import nhjax as nh  # noqa: E402
-
-
-def _timed(function, *arguments):
-    start = time.perf_counter()
-    jax.block_until_ready(function(*arguments))
-    return time.perf_counter() - start
+from _timing import timed, write  # noqa: E402
 
 
 def main():
@@ -48,12 +39,12 @@ def main():
     x0 = quartic.initial_state(0.7)
     states = quartic.random_initial_states(jax.random.key(0), options.batch)
 
-    compile_single = _timed(lambda x: single.lower(x).compile(), x0)
-    compile_batch = _timed(lambda x: batch.lower(x).compile(), states)
-    _timed(single, x0)
-    _timed(batch, states)
-    single_times = [_timed(single, x0) for _ in range(options.repeats)]
-    batch_times = [_timed(batch, states) for _ in range(options.repeats)]
+    compile_single = timed(lambda x: single.lower(x).compile(), x0)
+    compile_batch = timed(lambda x: batch.lower(x).compile(), states)
+    timed(single, x0)
+    timed(batch, states)
+    single_times = [timed(single, x0) for _ in range(options.repeats)]
+    batch_times = [timed(batch, states) for _ in range(options.repeats)]
 
     us_per_step = statistics.median(single_times) / options.steps * 1e6
     batch_rate = options.batch * options.batch_steps / statistics.median(batch_times)
@@ -72,17 +63,12 @@ def main():
         compile_s=dict(single=compile_single, batch=compile_batch, target=10.0),
         newton_iterations_per_step=float(iterations["root_find_steps"]) / options.steps,
         repeats=options.repeats,
-        machine=dict(processor=platform.processor(), cpus=jax.local_device_count(), backend=jax.default_backend()),
-        jax=jax.__version__,
     )
     print(f"single trajectory : {us_per_step:8.2f} µs/step  (target <= 5)")
     print(f"batch of {options.batch:<8} : {batch_rate:10.3e} trajectory-steps/s  (target >= 1e6)")
     print(f"compile           : {compile_single:.2f} s single, {compile_batch:.2f} s batch  (target <= 10)")
     print(f"Newton iterations : {results['newton_iterations_per_step']:.2f} per step")
-    path = pathlib.Path(options.out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(results, indent=2))
-    print(f"wrote {path}")
+    write(results, options.out)
 
 
 if __name__ == "__main__":

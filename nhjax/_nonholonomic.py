@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from ._linalg import solve_spd
 from ._householder import householder_frame, householder_signs
 from ._results import RESULTS, first_failure
 from ._adapted import adapted_structure
@@ -74,7 +75,7 @@ class NonholonomicSystem(AbstractSystem):
     def metric(self, q, args) -> Float[Array, "n n"]:
         """$M(q)$, the inverse of `inverse_metric`."""
         inverse = self.inverse_metric(q, args)
-        return jnp.linalg.solve(inverse, jnp.eye(q.shape[0], dtype=inverse.dtype))
+        return solve_spd(inverse, jnp.eye(q.shape[0], dtype=inverse.dtype))
 
     def constraint_residual(self, y, args) -> Float[Array, " k"]:
         """$A(q)\\,\\partial H/\\partial p$, zero on the constraint."""
@@ -90,7 +91,7 @@ class NonholonomicSystem(AbstractSystem):
         force = jax.grad(self.hamiltonian, argnums=0)(q, p, args)
         _, drift = jax.jvp(lambda x: self.constraints(x, args) @ self.velocity(x, p, args), (q,), (v,))
         ka_t = self.inverse_metric(q, args) @ a.T
-        return jnp.linalg.solve(a @ ka_t, ka_t.T @ force - drift)
+        return solve_spd(a @ ka_t, ka_t.T @ force - drift)
 
     def vf(self, t, y, args):
         del t
@@ -110,7 +111,7 @@ class NonholonomicSystem(AbstractSystem):
         constraint: $p - A^T(AKA^T)^{-1}AKp$, so that $A K p' = 0$."""
         a = self.constraints(q, args)
         ka_t = self.inverse_metric(q, args) @ a.T
-        return p - a.T @ jnp.linalg.solve(a @ ka_t, ka_t.T @ p)
+        return p - a.T @ solve_spd(a @ ka_t, ka_t.T @ p)
 
     # The reduced system on D*.
 
@@ -133,8 +134,8 @@ class NonholonomicSystem(AbstractSystem):
         r"""$p = M X (X^T M X)^{-1}\rho$, eq. (ptoptilde): the momentum on the constraint
         with $X^T p = \rho$."""
         frame = self.frame(q, args, signs)
-        weighted = jnp.linalg.solve(self.inverse_metric(q, args), frame)
-        return weighted @ jnp.linalg.solve(frame.T @ weighted, rho)
+        weighted = solve_spd(self.inverse_metric(q, args), frame)
+        return weighted @ solve_spd(frame.T @ weighted, rho)
 
     def to_reduced(self, y, args, signs) -> Float[Array, " n+m"]:
         r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
@@ -272,8 +273,8 @@ class ReducedSystem(eqx.Module):
         r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
         q, rho = _split_reduced(zeta, self.signs)
         frame, derivative = self._frame_and_derivative(q, args)
-        weighted = jnp.linalg.solve(self.system.inverse_metric(q, args), frame)
-        y = jnp.linalg.solve(frame.T @ weighted, rho)
+        weighted = solve_spd(self.system.inverse_metric(q, args), frame)
+        y = solve_spd(frame.T @ weighted, rho)
         p = weighted @ y
         along_frame = jnp.einsum("j,jai,ib->ab", p, derivative, frame)
         structure = adapted_structure(frame, along_frame - along_frame.T)

@@ -12,12 +12,14 @@ from typing import Any, ClassVar
 import diffrax
 import equinox as eqx
 import jax
+import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Int
 
 from .._results import RESULTS
 from .._system import AbstractSystem
+from .chord import Chord
 
 
 class MethodState(eqx.Module):
@@ -35,14 +37,23 @@ class MethodState(eqx.Module):
 
 
 def default_root_finder(dtype) -> optx.AbstractRootFinder:
-    """Newton's method to a few ulps of the dtype.
+    """The chord iteration (`nhjax._solver.chord.Chord`) to a few ulps of the dtype.
 
-    Every nhjax method poses its root find in scaled unknowns of size O(1) (an increment
-    divided by `1 + max|state|`), so one absolute tolerance serves every system. Newton
-    stops when both the last correction and the residual are below it, and returns the
-    corrected iterate, whose error is then the square of that: roundoff.
+    Every nhjax method poses its root find in scaled unknowns (`increment_scale`), so
+    one absolute tolerance serves every system. The
+    iteration stops when both the last correction and the residual are below it, and
+    returns the corrected iterate, whose error is then a small multiple of that.
     """
-    return optx.Newton(rtol=0.0, atol=64 * float(jnp.finfo(dtype).eps))
+    return Chord(atol=64 * float(jnp.finfo(dtype).eps))
+
+
+def increment_scale(x: Array) -> Array:
+    """The scale $s = 1 + |x|$ (elementwise, no gradient) in which a method poses the
+    increment of `x`: $u = (x' - x)/s$ is O(h), and a fixed absolute tolerance on $u$
+    is an absolute one for components of size below 1 and a relative one above. Per
+    component, so that large components (positions far from the origin) do not loosen
+    the tolerance on small ones (momenta, which set the energy)."""
+    return lax.stop_gradient(1 + jnp.abs(x))
 
 
 class AbstractMethod(diffrax.AbstractSolver):
@@ -74,16 +85,25 @@ class AbstractMethod(diffrax.AbstractSolver):
             system = system.term
         return system, terms.contr(t0, t1)
 
-    def solve(self, residual, guess, args: Any):
-        """Root of `residual(unknowns, args)` from `guess`: (value, diffrax result, steps)."""
+    def solve(self, residual, guess, args: Any, simplified_residual=None):
+        """Root of `residual(unknowns, args)` from `guess`: (value, diffrax result, steps).
+
+        `simplified_residual`, if given, is a cheaper function whose Jacobian at `guess`
+        approximates that of `residual` (see `nhjax._solver.chord`); root finders that
+        take a Jacobian approximation (the default `Chord`) use it.
+        """
         root_finder = self.root_finder
         if root_finder is None:
             root_finder = default_root_finder(jnp.result_type(guess))
+        options = {}
+        if simplified_residual is not None:
+            options["jacobian"] = jax.jacfwd(simplified_residual)(guess, args)
         solution = optx.root_find(
             residual,
             root_finder,
             guess,
             args,
+            options=options,
             max_steps=self.root_find_max_steps,
             throw=False,
         )

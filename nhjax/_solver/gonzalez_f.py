@@ -3,13 +3,17 @@ constraint forces."""
 
 from typing import ClassVar
 
-import jax.lax as lax
+import jax
 import jax.numpy as jnp
 import optimistix as optx
 
 from .._discrete_gradient import gonzalez
 from .._nonholonomic import NonholonomicSystem
-from .base import AbstractMethod
+from .base import AbstractMethod, increment_scale
+
+
+def _midpoint_gradient(f, x, x1, args):
+    return jax.grad(f)(0.5 * (x + x1), args)
 
 
 class GonzalezF(AbstractMethod):
@@ -25,8 +29,9 @@ class GonzalezF(AbstractMethod):
     step's end, so $A(q)\partial_pH(q, p) = 0$ holds only to the method's accuracy.
     Second order and time-symmetric.
 
-    Each step solves for the scaled increment $(z' - z)/s$, $s = 1 + |z|_\infty$, and
-    $h\lambda/s$, from the explicit Euler predictor of the index-1 equations.
+    Each step solves for the scaled increment $(z' - z)/s$, $s = 1 + |z|$ (elementwise),
+    and the impulse $h\lambda$, from the explicit Euler predictor of the index-1
+    equations.
 
     **Arguments:** `root_finder`, `root_find_max_steps` as for `nhjax.DiscreteGradient`.
     """
@@ -41,18 +46,27 @@ class GonzalezF(AbstractMethod):
         return 2
 
     @staticmethod
-    def _residual(unknowns, data):
+    def _residual(unknowns, data, discrete_gradient=gonzalez):
         system, z, h, scale, args = data
         (n2,) = z.shape
         n = n2 // 2
-        u, reaction = unknowns[:n2], unknowns[n2:]
+        u, impulse = unknowns[:n2], unknowns[n2:]
         z1 = z + scale * u
         hamiltonian = lambda x, args: system.hamiltonian(x[:n], x[n:], args)  # noqa: E731
-        gradient = gonzalez(hamiltonian, z, z1, args)
+        gradient = discrete_gradient(hamiltonian, z, z1, args)
         a = system.constraints(0.5 * (z[:n] + z1[:n]), args)
         flow = jnp.concatenate([gradient[n:], -gradient[:n]])
-        force = jnp.concatenate([jnp.zeros((n,), z.dtype), a.T @ reaction])
-        return jnp.concatenate([u - h * flow / scale - force, (h / scale) * (a @ gradient[n:])])
+        force = jnp.concatenate([jnp.zeros((n,), z.dtype), a.T @ impulse])
+        velocity_scale = jnp.max(scale[:n])
+        return jnp.concatenate(
+            [u - (h * flow + force) / scale, (h / velocity_scale) * (a @ gradient[n:])]
+        )
+
+    @classmethod
+    def _midpoint_residual(cls, unknowns, data):
+        """The residual with the midpoint gradient in place of the discrete gradient
+        (for the Jacobian approximation, see `nhjax._solver.chord`)."""
+        return cls._residual(unknowns, data, _midpoint_gradient)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump
@@ -60,11 +74,12 @@ class GonzalezF(AbstractMethod):
         q, p = y0
         n = q.shape[0]
         z = jnp.concatenate([q, p])
-        scale = lax.stop_gradient(1 + jnp.max(jnp.abs(z)))
+        scale = increment_scale(z)
         velocity, acceleration = system.vf(t0, y0, args)
         guess = jnp.concatenate(
-            [h * velocity / scale, h * acceleration / scale, h * system.multiplier(y0, args) / scale]
+            [h * jnp.concatenate([velocity, acceleration]) / scale, h * system.multiplier(y0, args)]
         )
-        unknowns, result, steps = self.solve(self._residual, guess, (system, z, h, scale, args))
+        data = (system, z, h, scale, args)
+        unknowns, result, steps = self.solve(self._residual, guess, data, self._midpoint_residual)
         z1 = z + scale * unknowns[: 2 * n]
         return self.finish(y0, (z1[:n], z1[n:]), result, steps, solver_state)

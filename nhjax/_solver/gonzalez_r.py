@@ -10,7 +10,7 @@ import optimistix as optx
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import Derivative, NonholonomicSystem, ReducedSystem
 from .._results import RESULTS
-from .base import AbstractMethod
+from .base import AbstractMethod, increment_scale
 
 
 class GonzalezR(AbstractMethod):
@@ -87,6 +87,14 @@ class GonzalezR(AbstractMethod):
         )
         return u - h * (structure @ discrete_gradient) / scale
 
+    @staticmethod
+    def _midpoint_residual(u, data):
+        """The residual without the Gonzalez correction (for the Jacobian approximation,
+        see `nhjax._solver.chord`)."""
+        reduced, zeta, _, h, scale, args = data
+        structure, gradient = reduced.structure_and_gradient(zeta + 0.5 * scale * u, args)
+        return u - h * (structure @ gradient) / scale
+
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump
         system, h = self.system_and_step(terms, t0, t1)
@@ -94,14 +102,14 @@ class GonzalezR(AbstractMethod):
         signs = lax.stop_gradient(system.frame_signs(q, args))
         reduced = self._reduced(system, signs, h)
         zeta = system.to_reduced(y0, args, signs)
-        scale = lax.stop_gradient(1 + jnp.max(jnp.abs(zeta)))
+        scale = increment_scale(zeta)
         guess = h * reduced.vf(zeta, args) / scale
         # The step conserves H(q, p) itself rather than its reduced value H(q, p(q, rho)),
         # which differs by the roundoff of the map p -> rho -> p: that roundoff would
         # otherwise accumulate, with a bias, over many steps.
         energy = system.energy(y0, args)
         data = (reduced, zeta, energy, h, scale, args)
-        u, result, steps = self.solve(self._residual, guess, data)
+        u, result, steps = self.solve(self._residual, guess, data, self._midpoint_residual)
         zeta1 = zeta + scale * u
         y1 = system.from_reduced(zeta1, args, signs)
         full_rank = system.has_full_rank(q, args, signs) & system.has_full_rank(

@@ -1,0 +1,33 @@
+"""Small dense linear algebra written out in `jax.numpy` operations.
+
+The matrices inside a step are tiny (the metric, the Gram matrix of a frame: sizes 1 to
+~30). For these, a LAPACK call costs more in dispatch than in
+arithmetic, cannot be constant-folded when its input is constant (a constant metric),
+and under `vmap` becomes a loop of calls. Elimination unrolled over the (static) size
+is a few fused vector operations per column, vectorises across a batch, and is
+differentiable like any other `jax.numpy` code. Above `UNROLL_LIMIT` the LAPACK routines
+are used.
+"""
+
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+from jaxtyping import Array, Float
+
+
+UNROLL_LIMIT = 16
+
+
+def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
+    """$a^{-1}b$ for symmetric positive definite `a`, by Gauss--Jordan elimination
+    without pivoting (stable for SPD matrices: the pivots are ratios of leading
+    principal minors, all positive)."""
+    n = a.shape[0]
+    if n > UNROLL_LIMIT:
+        return jsl.cho_solve(jsl.cho_factor(a), b)
+    vector = b.ndim == 1
+    augmented = jnp.concatenate([a, b[:, None] if vector else b], axis=1)
+    for j in range(n):
+        row = augmented[j] / augmented[j, j]
+        augmented = (augmented - jnp.outer(augmented[:, j], row)).at[j].set(row)
+    solution = augmented[:, n:]
+    return solution[:, 0] if vector else solution
