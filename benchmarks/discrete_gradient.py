@@ -61,13 +61,13 @@ def main():
             target_trajectory_steps_per_s=1e6,
         ),
         compile_s=dict(single=compile_single, batch=compile_batch, target=10.0),
-        newton_iterations_per_step=float(iterations["root_find_steps"]) / options.steps,
+        root_find_iterations_per_step=float(iterations["root_find_steps"]) / options.steps,
         repeats=options.repeats,
     )
     print(f"single trajectory : {us_per_step:8.2f} µs/step  (target <= 5)")
     print(f"batch of {options.batch:<8} : {batch_rate:10.3e} trajectory-steps/s  (target >= 1e6)")
     print(f"compile           : {compile_single:.2f} s single, {compile_batch:.2f} s batch  (target <= 10)")
-    print(f"chord iterations  : {results['newton_iterations_per_step']:.2f} per step")
+    print(f"chord iterations  : {results['root_find_iterations_per_step']:.2f} per step")
     write(results, options.out)
 
 
