@@ -39,6 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._linalg import safe_norm
+
 
 ScalarFunction = Callable[[Float[Array, " N"], Any], Float[Array, ""]]
 
@@ -89,12 +91,6 @@ def _third_directional_derivative(f, x, direction, args):
     along = lambda y: jax.jvp(lambda z: f(z, args), (y,), (direction,))[1]  # noqa: E731
     twice = lambda y: jax.jvp(along, (y,), (direction,))[1]  # noqa: E731
     return jax.jvp(twice, (x,), (direction,))[1]
-
-
-def _safe_norm(v):
-    """|v| with derivative 0 (not NaN) at v = 0."""
-    square = v @ v
-    return jnp.where(square == 0, 0.0, jnp.sqrt(jnp.where(square == 0, 1.0, square)))
 
 
 def gonzalez(
@@ -161,7 +157,7 @@ def gonzalez_correction(
         return (numerator / jnp.where(near, 1.0, delta @ delta)) * delta
 
     def taylor_form():
-        length = _safe_norm(delta)
+        length = safe_norm(delta)
         direction = delta / jnp.where(length == 0, 1.0, length)
         third = _third_directional_derivative(f, midpoint, direction, args)
         return (third * length / 24.0) * delta

@@ -20,13 +20,7 @@ forward-mode derivative of its first).
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-
-def _column_norm(x):
-    """|x|, with finite derivatives at x = 0 (where the factorisation breaks down and
-    the caller reports rank deficiency)."""
-    square = x @ x
-    safe = jnp.where(square > 0, square, 1.0)
-    return jnp.where(square > 0, jnp.sqrt(safe), 0.0)
+from ._linalg import safe_norm
 
 
 def _reflectors(a_t, signs):
@@ -37,7 +31,9 @@ def _reflectors(a_t, signs):
     vectors, pivots, used = [], [], []
     for j in range(k):
         x = r[j:, j]
-        norm = _column_norm(x)
+        # Finite derivatives at x = 0, where the factorisation breaks down and the caller
+        # reports rank deficiency.
+        norm = safe_norm(x)
         sign = jnp.where(x[0] >= 0, 1.0, -1.0).astype(a_t.dtype) if signs is None else signs[j]
         length_sq = 2 * (norm**2 + sign * x[0] * norm)
         length = jnp.sqrt(jnp.where(length_sq > 0, length_sq, 1.0))

@@ -31,3 +31,9 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
         augmented = (augmented - jnp.outer(augmented[:, j], row)).at[j].set(row)
     solution = augmented[:, n:]
     return solution[:, 0] if vector else solution
+
+
+def safe_norm(v: Float[Array, " n"]) -> Float[Array, ""]:
+    """|v|, with derivative 0 (not NaN) at v = 0."""
+    square = v @ v
+    return jnp.where(square == 0, 0.0, jnp.sqrt(jnp.where(square == 0, 1.0, square)))

@@ -24,6 +24,14 @@ from ._system import AbstractSystem, SkewGradientSystem, _require_floating_vecto
 
 Derivative = Literal["autodiff", "central_difference"]
 
+
+def check_derivative(derivative) -> None:
+    """Raise a `ValueError` unless `derivative` names a way to compute dX/dq."""
+    if derivative not in ("autodiff", "central_difference"):
+        raise ValueError(
+            f'derivative must be "autodiff" or "central_difference", got {derivative!r}.'
+        )
+
 # Multiples of eps in the initial-state checks: loose enough for states built in
 # floating point, tight enough that what passes is preserved to the same level.
 _CHECK_TOLERANCE = 1000
@@ -133,9 +141,14 @@ class NonholonomicSystem(AbstractSystem):
     def momentum(self, q, rho, args, signs) -> Float[Array, " n"]:
         r"""$p = M X (X^T M X)^{-1}\rho$, eq. (ptoptilde): the momentum on the constraint
         with $X^T p = \rho$."""
-        frame = self.frame(q, args, signs)
+        return self._momentum_in_frame(q, self.frame(q, args, signs), rho, args)[0]
+
+    def _momentum_in_frame(self, q, frame, rho, args):
+        """(ptoptilde) for a given frame: $p$, and $y = (X^TMX)^{-1}\rho$, the velocity
+        in the frame ($\partial H/\partial p = Xy$)."""
         weighted = solve_spd(self.inverse_metric(q, args), frame)
-        return weighted @ solve_spd(frame.T @ weighted, rho)
+        y = solve_spd(frame.T @ weighted, rho)
+        return weighted @ y, y
 
     def to_reduced(self, y, args, signs) -> Float[Array, " n+m"]:
         r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
@@ -247,11 +260,7 @@ class ReducedSystem(eqx.Module):
     difference_step: Any = None
 
     def __check_init__(self):
-        if self.derivative not in ("autodiff", "central_difference"):
-            raise ValueError(
-                'derivative must be "autodiff" or "central_difference", got '
-                f"{self.derivative!r}."
-            )
+        check_derivative(self.derivative)
         if self.derivative == "central_difference" and self.difference_step is None:
             raise ValueError('derivative="central_difference" needs a difference_step.')
 
@@ -273,9 +282,7 @@ class ReducedSystem(eqx.Module):
         r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
         q, rho = _split_reduced(zeta, self.signs)
         frame, derivative = self._frame_and_derivative(q, args)
-        weighted = solve_spd(self.system.inverse_metric(q, args), frame)
-        y = solve_spd(frame.T @ weighted, rho)
-        p = weighted @ y
+        p, y = self.system._momentum_in_frame(q, frame, rho, args)
         along_frame = jnp.einsum("j,jai,ib->ab", p, derivative, frame)
         structure = adapted_structure(frame, along_frame - along_frame.T)
         grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - jnp.einsum(

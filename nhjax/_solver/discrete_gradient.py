@@ -4,12 +4,12 @@ import functools
 from collections.abc import Callable
 from typing import ClassVar
 
-import jax
 import optimistix as optx
 
 from .._discrete_gradient import avf, gonzalez, itoh_abe
 from .._system import SkewGradientSystem
 from .base import AbstractMethod, increment_scale
+from .chord import midpoint_gradient
 
 
 def midpoint_structure(structure, x, x1, args):
@@ -81,10 +81,6 @@ class DiscreteGradient(AbstractMethod):
         other discrete gradients, `None` (the chord Jacobian of the residual itself)."""
         if _underlying(self.discrete_gradient) is not gonzalez:
             return None
-
-        def midpoint_gradient(f, x, x1, args):
-            return jax.grad(f)(0.5 * (x + x1), args)
-
         return lambda u, data: self._residual(system, u, data, midpoint_gradient)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):

@@ -3,17 +3,13 @@ constraint forces."""
 
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
 import optimistix as optx
 
 from .._discrete_gradient import gonzalez
 from .._nonholonomic import NonholonomicSystem
 from .base import AbstractMethod, increment_scale
-
-
-def _midpoint_gradient(f, x, x1, args):
-    return jax.grad(f)(0.5 * (x + x1), args)
+from .chord import midpoint_gradient
 
 
 class GonzalezF(AbstractMethod):
@@ -66,7 +62,7 @@ class GonzalezF(AbstractMethod):
     def _midpoint_residual(cls, unknowns, data):
         """The residual with the midpoint gradient in place of the discrete gradient
         (for the Jacobian approximation, see `nhjax._solver.chord`)."""
-        return cls._residual(unknowns, data, _midpoint_gradient)
+        return cls._residual(unknowns, data, midpoint_gradient)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .._discrete_gradient import gonzalez_correction
-from .._nonholonomic import Derivative, NonholonomicSystem, ReducedSystem
+from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem
 from .._results import RESULTS
 from .base import AbstractMethod, increment_scale
 
@@ -56,11 +56,7 @@ class GonzalezR(AbstractMethod):
     root_find_max_steps: int = 20
 
     def __check_init__(self):
-        if self.derivative not in ("autodiff", "central_difference"):
-            raise ValueError(
-                'derivative must be "autodiff" or "central_difference", got '
-                f"{self.derivative!r}."
-            )
+        check_derivative(self.derivative)
 
     def order(self, terms):
         del terms
@@ -72,28 +68,26 @@ class GonzalezR(AbstractMethod):
             step = jnp.abs(h) if self.difference_step is None else self.difference_step
         return ReducedSystem(system, signs, self.derivative, step)
 
-    def _residual(self, u, data):
+    def _residual(self, u, data, correction: bool = True):
+        """`correction=False`: the residual with the midpoint gradient alone, for the
+        Jacobian approximation (see `nhjax._solver.chord`)."""
         reduced, zeta, energy, h, scale, args = data
         zeta1 = zeta + scale * u
         structure, gradient = reduced.structure_and_gradient(0.5 * (zeta + zeta1), args)
-        discrete_gradient = gonzalez_correction(
-            reduced.hamiltonian,
-            gradient,
-            zeta,
-            zeta1,
-            args,
-            taylor=self.derivative == "autodiff",
-            value=energy,
-        )
-        return u - h * (structure @ discrete_gradient) / scale
-
-    @staticmethod
-    def _midpoint_residual(u, data):
-        """The residual without the Gonzalez correction (for the Jacobian approximation,
-        see `nhjax._solver.chord`)."""
-        reduced, zeta, _, h, scale, args = data
-        structure, gradient = reduced.structure_and_gradient(zeta + 0.5 * scale * u, args)
+        if correction:
+            gradient = gonzalez_correction(
+                reduced.hamiltonian,
+                gradient,
+                zeta,
+                zeta1,
+                args,
+                taylor=self.derivative == "autodiff",
+                value=energy,
+            )
         return u - h * (structure @ gradient) / scale
+
+    def _midpoint_residual(self, u, data):
+        return self._residual(u, data, correction=False)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del made_jump
