@@ -144,7 +144,7 @@ class NonholonomicSystem(AbstractSystem):
         return self._momentum_in_frame(q, self.frame(q, args, signs), rho, args)[0]
 
     def _momentum_in_frame(self, q, frame, rho, args):
-        """(ptoptilde) for a given frame: $p$, and $y = (X^TMX)^{-1}\rho$, the velocity
+        r"""(ptoptilde) for a given frame: $p$, and $y = (X^TMX)^{-1}\rho$, the velocity
         in the frame ($\partial H/\partial p = Xy$)."""
         weighted = solve_spd(self.inverse_metric(q, args), frame)
         y = solve_spd(frame.T @ weighted, rho)
