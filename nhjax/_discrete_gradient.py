@@ -14,7 +14,8 @@ difference of `f` by $|x' - x|$. Evaluated as printed, the rounding error of tha
 difference, $\epsilon |f|$, is amplified by $1/|x' - x|$: at $|x' - x| = 10^{-10}$ the
 result has lost six digits, and at $x' = x$ it is $0/0$. Newton's first iterates and
 gradients flowing through the root find both visit that regime. So below a switch
-$|x' - x|_\infty < \tau (1 + |\tfrac{x + x'}{2}|_\infty)$, where the truncation error
+$|x'_i - x_i| < \tau (1 + |\bar x_i|)$, $\bar x = \tfrac{x + x'}{2}$ (for every $i$,
+in Gonzalez; per coordinate, in Itoh--Abe), where the truncation error
 of a local expansion, $\approx |f^{(5)}||\delta|^5/C$, falls below the rounding error
 $\epsilon|f|$ of the printed formula ($\tau = (C\epsilon)^{1/5}$, about $4\cdot10^{-3}$ in
 float64 and $0.2$ in float32), each uses a form free of cancellation:
@@ -51,12 +52,16 @@ _TAYLOR_TRUNCATION = 1920.0
 
 
 def _is_near(x, x1, delta, truncation: float):
-    r"""Where $|\delta|$ is below the switch $\tau(1 + |\bar x|_\infty)$,
+    r"""Where $|\delta_i|$ is below the switch $\tau(1 + |\bar x_i|)$,
     $\tau = (C\epsilon)^{1/5}$: there the expansion's truncation error, $|\delta|^5/C$,
-    is below the cancellation error $\epsilon$ of the printed divided difference."""
+    is below the cancellation error $\epsilon$ of the printed divided difference.
+
+    Each coordinate is measured against its own size: a scale common to all (such as
+    $1 + |\bar x|_\infty$) would let one large coordinate, a position far from the
+    origin, declare every step of the others "near", and the Taylor branch would then
+    be used for increments it does not resolve."""
     switch = (truncation * float(jnp.finfo(x.dtype).eps)) ** 0.2
-    midpoint_scale = 1.0 + jnp.max(jnp.abs(0.5 * (x + x1)))
-    return jnp.abs(delta) < switch * midpoint_scale
+    return jnp.abs(delta) < switch * (1.0 + jnp.abs(0.5 * (x + x1)))
 
 
 def avf(
@@ -132,7 +137,6 @@ def gonzalez_correction(
     args: Any = None,
     *,
     taylor: bool = True,
-    value: Float[Array, ""] | None = None,
 ) -> Float[Array, " N"]:
     r"""$g + \frac{f(x') - f(x) - g^T\delta}{|\delta|^2}\delta$ for a given midpoint
     gradient $g$: (gonzales) when $g = \nabla f(\bar x)$.
@@ -141,8 +145,6 @@ def gonzalez_correction(
     and nearly equal points use the Taylor form of `gonzalez`. With `taylor=False` (for
     an approximate $g$, as in GONZALEZ-R with finite differences, where no expansion
     applies) the printed formula is used down to $\delta = 0$, where the value is $g$.
-    `value`, if given, stands for $f(x)$: a caller that knows the energy it must
-    conserve more accurately than $f(x)$ evaluates it passes it here.
     """
     delta = x1 - x
     midpoint = 0.5 * (x + x1)
@@ -152,8 +154,7 @@ def gonzalez_correction(
         near = jnp.all(delta == 0)
 
     def printed():
-        start = f(x, args) if value is None else value
-        numerator = f(x1, args) - start - gradient @ delta
+        numerator = f(x1, args) - f(x, args) - gradient @ delta
         return (numerator / jnp.where(near, 1.0, delta @ delta)) * delta
 
     def taylor_form():

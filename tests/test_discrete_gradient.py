@@ -127,6 +127,19 @@ def test_printed_gonzalez_formula_would_fail_the_accuracy_test():
     assert float(jnp.max(jnp.abs(nh.gonzalez(f, x, x1, None) - g))) < 1e-15
 
 
+@pytest.mark.parametrize("dg", [nh.gonzalez, nh.itoh_abe], ids=lambda dg: dg.__name__)
+def test_energy_condition_beside_a_coordinate_far_from_the_origin(dg):
+    """A position of 1e3 (a sleigh far from where it started) must not make the others'
+    increments of 0.05 count as nearly equal: their local expansions would miss
+    (discGradEn) by the truncation error, about 1e-10 here."""
+    f = lambda x, args: jnp.sin(3 * x[1]) * jnp.exp(x[2]) + 1e-3 * x[0]  # noqa: E731
+    x = jnp.array([1e3, 0.3, -0.2])
+    x1 = x + jnp.array([0.05, 0.05, -0.05])
+    change = f(x1, None) - f(x, None)
+    defect = dg(f, x, x1, None) @ (x1 - x) - change
+    assert abs(float(defect)) <= 1e-14
+
+
 def _expected_jacobian(dg, hessian):
     """d dg(x, x')/dx' at x' = x: Hess/2 for the symmetric ones; for Itoh-Abe the strict
     lower triangle of the Hessian plus half its diagonal."""

@@ -15,24 +15,26 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array, Int
+from jaxtyping import Array, Int, PyTree
 
 from .._results import RESULTS
 from .._system import AbstractSystem
-from .chord import Chord
+from .chord import Chord, invert
 
 
 class MethodState(eqx.Module):
-    """The diffrax solver state of an nhjax method: root-finder iterations so far, and
-    the nhjax code of the step that failed, if one did."""
+    """The diffrax solver state of an nhjax method: root-finder iterations so far, the
+    nhjax code of the step that failed, if one did, and what the method carries from
+    one step to the next (`AbstractMethod.initial_carry`)."""
 
     total_steps: Int[Array, ""]
     max_steps: Int[Array, ""]
     failure: RESULTS
+    carry: PyTree = None
 
-    def record(self, steps: Int[Array, ""], failure: RESULTS) -> "MethodState":
+    def record(self, steps: Int[Array, ""], failure: RESULTS, carry: PyTree) -> "MethodState":
         return MethodState(
-            self.total_steps + steps, jnp.maximum(self.max_steps, steps), failure
+            self.total_steps + steps, jnp.maximum(self.max_steps, steps), failure, carry
         )
 
 
@@ -57,10 +59,23 @@ def increment_scale(x: Array) -> Array:
 
 
 class AbstractMethod(diffrax.AbstractSolver):
-    """A one-step method whose step is a root find.
+    r"""A one-step method whose step is a root find: the generic stepper.
+
+    A method says how a step is posed and what its root gives:
+
+    - `setup(system, h, y0, args, carry) -> (guess, data)`: the initial guess for the
+      unknowns (a 1-D array) and everything the residual needs;
+    - `residual(unknowns, data)`, whose root is the step;
+    - `simplified_residual(unknowns, data)`: a cheaper function with nearly the same
+      Jacobian (see `nhjax._solver.chord`), whose Jacobian at the guess the default
+      chord root finder uses; by default the residual itself;
+    - `complete(unknowns, data) -> (y1, failure, carry)`: the new state, an nhjax code
+      for failures only the method can detect, and what the next step receives as
+      `carry` (the first step receives `initial_carry(system, y0, args)`, by default
+      `None`).
 
     Subclasses set `root_finder` (`None`: `default_root_finder` for the state's dtype)
-    and `root_find_max_steps`. Their `step` calls `solve` and `finish`.
+    and `root_find_max_steps`.
     """
 
     interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
@@ -68,10 +83,26 @@ class AbstractMethod(diffrax.AbstractSolver):
     root_finder: eqx.AbstractVar[optx.AbstractRootFinder | None]
     root_find_max_steps: eqx.AbstractVar[int]
 
+    def initial_carry(self, system, y0, args) -> PyTree:
+        del system, y0, args
+        return None
+
+    def setup(self, system, h, y0, args, carry) -> tuple[Array, Any]:
+        raise NotImplementedError
+
+    def residual(self, unknowns, data) -> Array:
+        raise NotImplementedError
+
+    def simplified_residual(self, unknowns, data) -> Array:
+        return self.residual(unknowns, data)
+
+    def complete(self, unknowns, data) -> tuple[Any, RESULTS, PyTree]:
+        raise NotImplementedError
+
     def init(self, terms, t0, t1, y0, args) -> MethodState:
-        del terms, t0, t1, y0, args
+        system, _ = self.system_and_step(terms, t0, t1)
         zero = jnp.array(0, dtype=jnp.int32)
-        return MethodState(zero, zero, RESULTS.successful)
+        return MethodState(zero, zero, RESULTS.successful, self.initial_carry(system, y0, args))
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
@@ -85,33 +116,33 @@ class AbstractMethod(diffrax.AbstractSolver):
             system = system.term
         return system, terms.contr(t0, t1)
 
-    def solve(self, residual, guess, args: Any, simplified_residual=None):
-        """Root of `residual(unknowns, args)` from `guess`: (value, diffrax result, steps).
+    def _root_finder(self, dtype) -> optx.AbstractRootFinder:
+        return default_root_finder(dtype) if self.root_finder is None else self.root_finder
 
-        `simplified_residual`, if given, is a cheaper function whose Jacobian at `guess`
-        approximates that of `residual` (see `nhjax._solver.chord`); root finders that
-        take a Jacobian approximation (the default `Chord`) use it.
-        """
-        root_finder = self.root_finder
-        if root_finder is None:
-            root_finder = default_root_finder(jnp.result_type(guess))
+    def step(self, terms, t0, t1, y0, args, solver_state: MethodState, made_jump):
+        del made_jump
+        system, h = self.system_and_step(terms, t0, t1)
+        guess, data = self.setup(system, h, y0, args, solver_state.carry)
+        root_finder = self._root_finder(guess.dtype)
         options = {}
-        if simplified_residual is not None:
-            options["jacobian"] = jax.jacfwd(simplified_residual)(guess, args)
+        if isinstance(root_finder, Chord):
+            options["inverse"] = invert(jax.jacfwd(self.simplified_residual)(guess, data))
         solution = optx.root_find(
-            residual,
+            self.residual,
             root_finder,
             guess,
-            args,
+            data,
             options=options,
             max_steps=self.root_find_max_steps,
             throw=False,
         )
         result = diffrax.RESULTS.promote(solution.result)
-        return solution.value, result, solution.stats["num_steps"]
+        y1, failure, carry = self.complete(solution.value, data)
+        state = solver_state.record(solution.stats["num_steps"], failure, carry)
+        return self.finish(y0, y1, result, state, failure)
 
     @staticmethod
-    def finish(y0, y1, result, steps, solver_state: MethodState, failure=RESULTS.successful):
+    def finish(y0, y1, result, solver_state: MethodState, failure=RESULTS.successful):
         """The step's return tuple. A failed or non-finite step returns NaN, never a
         plausible-looking state, together with its result code. `failure` is a code the
         method detected itself (see the module docstring)."""
@@ -127,4 +158,4 @@ class AbstractMethod(diffrax.AbstractSolver):
         success = result == diffrax.RESULTS.successful
         y1 = jax.tree.map(lambda leaf: jnp.where(success, leaf, jnp.nan), y1)
         dense_info = dict(y0=y0, y1=y1)
-        return y1, None, dense_info, solver_state.record(steps, failure), result
+        return y1, None, dense_info, solver_state, result

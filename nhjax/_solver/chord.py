@@ -28,6 +28,13 @@ def midpoint_gradient(f, x, x1, args):
     return jax.grad(f)(0.5 * (x + x1), args)
 
 
+def invert(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """The explicit inverse of the (well-conditioned, I - O(h)) chord matrix: one
+    matrix-vector product per iteration instead of two triangular solves. Its rounding
+    changes only the contraction rate, not the root."""
+    return jnp.linalg.inv(jacobian)
+
+
 class _ChordState(eqx.Module):
     inverse: Float[Array, "n n"]
     diff_size: Scalar
@@ -39,8 +46,9 @@ class _ChordState(eqx.Module):
 class Chord(optx.AbstractRootFinder):
     r"""Chord iteration for a root of `fn(u, args)`, `u` a 1-D array.
 
-    The Jacobian approximation is `options["jacobian"]` when the caller supplies one,
-    otherwise `jax.jacfwd(fn)` at the initial guess; it is inverted once. Stops when
+    The inverse Jacobian approximation is `options["inverse"]` when the caller supplies
+    one; otherwise the inverse of
+    `options["jacobian"]`, or of `jax.jacfwd(fn)` at the initial guess. Stops when
     the last correction and the residual are both below `atol` (max norm); fails with
     `optimistix.RESULTS.nonlinear_divergence` if the corrections grow (by more than 2x
     from one iteration to the next) or become non-finite.
@@ -52,13 +60,13 @@ class Chord(optx.AbstractRootFinder):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del f_struct, aux_struct, tags
-        jacobian = options.get("jacobian")
-        if jacobian is None:
-            jacobian = jax.jacfwd(lambda u: fn(u, args)[0])(y)
-        # The explicit inverse of the (well-conditioned, I - O(h)) matrix: one matrix-vector
-        # product per iteration instead of two triangular solves. Its rounding changes
-        # only the contraction rate, not the root.
-        inverse = lax.stop_gradient(jnp.linalg.inv(jacobian))
+        inverse = options.get("inverse")
+        if inverse is None:
+            jacobian = options.get("jacobian")
+            if jacobian is None:
+                jacobian = jax.jacfwd(lambda u: fn(u, args)[0])(y)
+            inverse = invert(jacobian)
+        inverse = lax.stop_gradient(inverse)
         infinity = jnp.array(jnp.inf, dtype=y.dtype)
         return _ChordState(inverse, infinity, infinity, infinity, jnp.array(0))
 

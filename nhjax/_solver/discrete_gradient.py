@@ -7,6 +7,7 @@ from typing import ClassVar
 import optimistix as optx
 
 from .._discrete_gradient import avf, gonzalez, itoh_abe
+from .._results import RESULTS
 from .._system import SkewGradientSystem
 from .base import AbstractMethod, increment_scale
 from .chord import midpoint_gradient
@@ -67,29 +68,28 @@ class DiscreteGradient(AbstractMethod):
             _underlying(self.discrete_gradient)
         )
 
-    def _residual(self, system: SkewGradientSystem, u, data, discrete_gradient=None):
-        x, h, scale, args = data
+    def setup(self, system: SkewGradientSystem, h, y0, args, carry):
+        del carry
+        scale = increment_scale(y0)
+        guess = h * system.vf(None, y0, args) / scale
+        return guess, (system, y0, h, scale, args)
+
+    def residual(self, u, data, discrete_gradient=None):
+        system, x, h, scale, args = data
         x1 = x + scale * u
         discrete_gradient = self.discrete_gradient if discrete_gradient is None else discrete_gradient
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
         return u - h * (structure @ gradient) / scale
 
-    def _simplified_residual(self, system: SkewGradientSystem):
+    def simplified_residual(self, u, data):
         """For Gonzalez, the residual with the midpoint gradient, whose Jacobian differs
         by O(h^3) and needs no third derivatives (see `nhjax._solver.chord`); for the
-        other discrete gradients, `None` (the chord Jacobian of the residual itself)."""
+        other discrete gradients, the residual itself."""
         if _underlying(self.discrete_gradient) is not gonzalez:
-            return None
-        return lambda u, data: self._residual(system, u, data, midpoint_gradient)
+            return self.residual(u, data)
+        return self.residual(u, data, midpoint_gradient)
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        del made_jump
-        system, h = self.system_and_step(terms, t0, t1)
-        scale = increment_scale(y0)
-        guess = h * system.vf(t0, y0, args) / scale
-        residual = lambda u, data: self._residual(system, u, data)  # noqa: E731
-        u, result, steps = self.solve(
-            residual, guess, (y0, h, scale, args), self._simplified_residual(system)
-        )
-        return self.finish(y0, y0 + scale * u, result, steps, solver_state)
+    def complete(self, u, data):
+        _, x, _, scale, _ = data
+        return x + scale * u, RESULTS.successful, None

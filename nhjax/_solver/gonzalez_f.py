@@ -8,6 +8,7 @@ import optimistix as optx
 
 from .._discrete_gradient import gonzalez
 from .._nonholonomic import NonholonomicSystem
+from .._results import RESULTS
 from .base import AbstractMethod, increment_scale
 from .chord import midpoint_gradient
 
@@ -41,8 +42,18 @@ class GonzalezF(AbstractMethod):
         del terms
         return 2
 
-    @staticmethod
-    def _residual(unknowns, data, discrete_gradient=gonzalez):
+    def setup(self, system: NonholonomicSystem, h, y0, args, carry):
+        del carry
+        q, p = y0
+        z = jnp.concatenate([q, p])
+        scale = increment_scale(z)
+        velocity, acceleration = system.vf(None, y0, args)
+        guess = jnp.concatenate(
+            [h * jnp.concatenate([velocity, acceleration]) / scale, h * system.multiplier(y0, args)]
+        )
+        return guess, (system, z, h, scale, args)
+
+    def residual(self, unknowns, data, discrete_gradient=gonzalez):
         system, z, h, scale, args = data
         (n2,) = z.shape
         n = n2 // 2
@@ -58,24 +69,13 @@ class GonzalezF(AbstractMethod):
             [u - (h * flow + force) / scale, (h / velocity_scale) * (a @ gradient[n:])]
         )
 
-    @classmethod
-    def _midpoint_residual(cls, unknowns, data):
+    def simplified_residual(self, unknowns, data):
         """The residual with the midpoint gradient in place of the discrete gradient
         (for the Jacobian approximation, see `nhjax._solver.chord`)."""
-        return cls._residual(unknowns, data, midpoint_gradient)
+        return self.residual(unknowns, data, midpoint_gradient)
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        del made_jump
-        system, h = self.system_and_step(terms, t0, t1)
-        q, p = y0
-        n = q.shape[0]
-        z = jnp.concatenate([q, p])
-        scale = increment_scale(z)
-        velocity, acceleration = system.vf(t0, y0, args)
-        guess = jnp.concatenate(
-            [h * jnp.concatenate([velocity, acceleration]) / scale, h * system.multiplier(y0, args)]
-        )
-        data = (system, z, h, scale, args)
-        unknowns, result, steps = self.solve(self._residual, guess, data, self._midpoint_residual)
+    def complete(self, unknowns, data):
+        _, z, _, scale, _ = data
+        n = z.shape[0] // 2
         z1 = z + scale * unknowns[: 2 * n]
-        return self.finish(y0, (z1[:n], z1[n:]), result, steps, solver_state)
+        return (z1[:n], z1[n:]), RESULTS.successful, None

@@ -68,10 +68,31 @@ class GonzalezR(AbstractMethod):
             step = jnp.abs(h) if self.difference_step is None else self.difference_step
         return ReducedSystem(system, signs, self.derivative, step)
 
-    def _residual(self, u, data, correction: bool = True):
+    def initial_carry(self, system: NonholonomicSystem, y0, args):
+        q, _ = y0
+        signs = lax.stop_gradient(system.frame_signs(q, args))
+        return system.to_reduced(y0, args, signs), signs
+
+    def setup(self, system: NonholonomicSystem, h, y0, args, carry):
+        # A step starts from the previous step's zeta' itself, not from
+        # zeta = (q, X(q)^T p) recomputed from the (q, p) it returned: the map
+        # p -> rho -> p rounds with a bias, which over many steps would drift H. The
+        # recomputed zeta is used where that does not apply: when the frame signs change
+        # at q, and when y0 is not the state the previous step returned.
+        q, _ = y0
+        carried_zeta, carried_signs = carry
+        signs = lax.stop_gradient(system.frame_signs(q, args))
+        continues = jnp.all(signs == carried_signs) & jnp.all(carried_zeta[: q.shape[0]] == q)
+        zeta = jnp.where(continues, carried_zeta, system.to_reduced(y0, args, signs))
+        reduced = self._reduced(system, signs, h)
+        scale = increment_scale(zeta)
+        guess = h * reduced.vf(zeta, args) / scale
+        return guess, (reduced, zeta, h, scale, args)
+
+    def residual(self, u, data, correction: bool = True):
         """`correction=False`: the residual with the midpoint gradient alone, for the
         Jacobian approximation (see `nhjax._solver.chord`)."""
-        reduced, zeta, energy, h, scale, args = data
+        reduced, zeta, h, scale, args = data
         zeta1 = zeta + scale * u
         structure, gradient = reduced.structure_and_gradient(0.5 * (zeta + zeta1), args)
         if correction:
@@ -82,32 +103,20 @@ class GonzalezR(AbstractMethod):
                 zeta1,
                 args,
                 taylor=self.derivative == "autodiff",
-                value=energy,
             )
         return u - h * (structure @ gradient) / scale
 
-    def _midpoint_residual(self, u, data):
-        return self._residual(u, data, correction=False)
+    def simplified_residual(self, u, data):
+        return self.residual(u, data, correction=False)
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        del made_jump
-        system, h = self.system_and_step(terms, t0, t1)
-        q, _ = y0
-        signs = lax.stop_gradient(system.frame_signs(q, args))
-        reduced = self._reduced(system, signs, h)
-        zeta = system.to_reduced(y0, args, signs)
-        scale = increment_scale(zeta)
-        guess = h * reduced.vf(zeta, args) / scale
-        # The step conserves H(q, p) itself rather than its reduced value H(q, p(q, rho)),
-        # which differs by the roundoff of the map p -> rho -> p: that roundoff would
-        # otherwise accumulate, with a bias, over many steps.
-        energy = system.energy(y0, args)
-        data = (reduced, zeta, energy, h, scale, args)
-        u, result, steps = self.solve(self._residual, guess, data, self._midpoint_residual)
+    def complete(self, u, data):
+        reduced, zeta, _, scale, args = data
+        system, signs = reduced.system, reduced.signs
         zeta1 = zeta + scale * u
         y1 = system.from_reduced(zeta1, args, signs)
+        q = zeta[: y1[0].shape[0]]
         full_rank = system.has_full_rank(q, args, signs) & system.has_full_rank(
             y1[0], args, signs
         )
         failure = RESULTS.where(full_rank, RESULTS.successful, RESULTS.constraints_rank_deficient)
-        return self.finish(y0, y1, result, steps, solver_state, failure)
+        return y1, failure, (zeta1, signs)

@@ -41,12 +41,20 @@ def test_energy_and_constraint_to_roundoff_over_ten_thousand_steps(name):
     example, y0 = _starts()[name]
     solution = nh.integrate(example.canonical, METHOD, y0, 0.1, 10_000, args=example.args, save_every=100)
     assert solution.result == nh.RESULTS.successful
-    # The sleigh and the disk, whose positions grow without bound, drift by a fraction
-    # of an ulp of H per step (measured: sleigh 1.9e-13, disk 4.0e-13 over these steps;
-    # the analytic adapted forms give 1.7e-14 from the same states): not yet at the
-    # 1e-13 of the gearbox and the quartic.
-    energy_tolerance = 1e-12 if name.startswith(("sleigh", "disk")) else 1e-13
-    assert relative_energy_error(solution) <= energy_tolerance
+    assert relative_energy_error(solution) <= 1e-13
+    assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-13
+
+
+def test_energy_across_changes_of_the_frame_signs():
+    """A step starts from the previous step's reduced state, except where the frame's
+    sign choices change (then from (q, p)): the sleigh's turning crosses such changes,
+    and energy holds across them."""
+    example, y0 = _starts()["sleigh, q-dependent metric"]
+    system = example.canonical
+    solution = nh.integrate(system, METHOD, y0, 0.1, 2_000, args=example.args)
+    signs = jax.vmap(lambda q: system.frame_signs(q, example.args))(solution.ys[0])
+    assert int(jnp.sum(jnp.any(signs[1:] != signs[:-1], axis=1))) >= 1
+    assert relative_energy_error(solution) <= 1e-13
     assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-13
 
 
