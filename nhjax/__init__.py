@@ -7,7 +7,11 @@ conservation to roundoff. float32 works too, with tolerances that follow the dty
 
 from . import examples as examples
 from ._discrete_gradient import avf as avf, gonzalez as gonzalez, itoh_abe as itoh_abe
-from ._integrate import integrate as integrate, Solution as Solution
+from ._integrate import (
+    integrate as integrate,
+    integrate_adaptive as integrate_adaptive,
+    Solution as Solution,
+)
 from ._nonholonomic import NonholonomicSystem as NonholonomicSystem
 from ._results import RESULTS as RESULTS
 from ._solver import (

@@ -1,4 +1,6 @@
-"""How steps are strung together: fixed steps through `diffrax.diffeqsolve`."""
+"""How steps are strung together: fixed steps through `diffrax.diffeqsolve` for any
+method (`integrate`), and adaptive steps of a standard diffrax solver on the system's own
+vector field (`integrate_adaptive`), the non-geometric baseline and the tests' reference."""
 
 import numbers
 from typing import Any
@@ -165,6 +167,103 @@ def _integrate(system, method, y0, dt, t0, args, *, n_steps, save_every, progres
         num_steps=solution.stats["num_accepted_steps"],
         root_find_steps=getattr(method_state, "total_steps", None),
         max_root_find_steps=getattr(method_state, "max_steps", None),
+    )
+    return Solution(
+        ts=solution.ts,
+        ys=ys,
+        energy=observed["energy"],
+        constraint=observed.get("constraint"),
+        result=result,
+        stats=stats,
+    )
+
+
+def integrate_adaptive(
+    system: AbstractSystem,
+    y0: PyTree[Array],
+    t1: float | Array,
+    args: PyTree = None,
+    *,
+    t0: float | Array = 0.0,
+    save_at: Float[Array, " n_saved"] | None = None,
+    solver: diffrax.AbstractAdaptiveSolver | None = None,
+    rtol: float = 1e-12,
+    atol: float = 1e-12,
+    max_steps: int = 1_000_000,
+    throw: bool = True,
+) -> Solution:
+    r"""Integrate `system`'s vector field from `t0` to `t1` with an adaptive diffrax
+    solver (default `diffrax.Dopri8()`) under a PID step-size controller.
+
+    For a `NonholonomicSystem` the vector field is the index-1 ODE, the multiplier
+    eliminated from $\tfrac{d}{dt}[A(q)\partial_pH] = 0$: what a user without
+    nhjax's methods would integrate. Neither energy nor constraint is preserved beyond
+    the tolerance, and the constraint drifts over long times; at tight tolerance this is
+    the high-accuracy reference for convergence tests. For fixed steps of a standard
+    solver (e.g. `diffrax.Tsit5()`) use `nhjax.integrate` with that solver.
+
+    **Arguments:** `save_at`, the times to save (default `[t0, t1]`, inside `[t0, t1]`);
+    `rtol`, `atol` for the controller; `max_steps`; `throw` as for `nhjax.integrate`.
+    Returns a `Solution` whose `stats` hold `num_steps` (accepted steps) and
+    `num_rejected_steps`.
+    """
+    if not isinstance(max_steps, numbers.Integral) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+    if not (rtol > 0 and atol > 0):
+        raise ValueError(f"rtol and atol must be positive, got rtol={rtol}, atol={atol}.")
+    if not isinstance(t1, jax.core.Tracer) and not isinstance(t0, jax.core.Tracer) and not t1 > t0:
+        raise ValueError(f"t1 must be after t0, got t0={t0}, t1={t1}.")
+    system.check_shapes(y0, args)
+    dtype = _state_dtype(y0)
+    t0 = jnp.asarray(t0, dtype=dtype)
+    t1 = jnp.asarray(t1, dtype=dtype)
+    save_at = jnp.stack([t0, t1]) if save_at is None else jnp.asarray(save_at, dtype=dtype)
+    if save_at.ndim != 1:
+        raise ValueError(f"save_at must be a 1-D array of times, got shape {save_at.shape}.")
+    return _integrate_adaptive(
+        system,
+        diffrax.Dopri8() if solver is None else solver,
+        y0,
+        t0,
+        t1,
+        save_at,
+        _trace_floats(args),
+        rtol=float(rtol),
+        atol=float(atol),
+        max_steps=int(max_steps),
+        throw=bool(throw),
+    )
+
+
+@eqx.filter_jit
+def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, *, rtol, atol, max_steps, throw):
+    initial_result = system.initial_state_result(y0, args)
+    y_start = jax.tree.map(lambda y: jnp.where(initial_result == RESULTS.successful, y, jnp.nan), y0)
+
+    def save(t, y, args):
+        del t
+        return y, system.observables(y, args)
+
+    solution = diffrax.diffeqsolve(
+        system,
+        solver,
+        t0=t0,
+        t1=t1,
+        dt0=None,
+        y0=y_start,
+        args=args,
+        saveat=diffrax.SaveAt(ts=save_at, fn=save),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        max_steps=max_steps,
+        throw=False,
+    )
+    ys, observed = solution.ys
+    result = first_failure(initial_result, from_diffrax(solution.result))
+    if throw:
+        ys = result.error_if(ys, result != RESULTS.successful)
+    stats = dict(
+        num_steps=solution.stats["num_accepted_steps"],
+        num_rejected_steps=solution.stats["num_rejected_steps"],
     )
     return Solution(
         ts=solution.ts,

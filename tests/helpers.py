@@ -1,6 +1,5 @@
 """Shared test helpers: order fitting and independent reference solutions."""
 
-import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,52 +17,10 @@ def relative_energy_error(solution) -> float:
     return float(jnp.max(jnp.abs(solution.energy / solution.energy[0] - 1)))
 
 
-def quartic_reference(q0, p0, t1, n=3):
-    """The chaotic quartic in canonical coordinates (M = I), written independently of
-    nhjax's adapted form: qdot = v, vdot = -grad V + lambda a(q), with the multiplier
-    eliminated from d/dt[a(q) . v] = 0, a = (1, 0_n, w). Dopri8 at rtol = atol = 1e-13.
-    """
-
-    def potential(q):
-        w, z = q[1 : n + 1], q[n + 1 :]
-        return 0.5 * (q @ q + z[0] ** 2 * z[1] ** 2 + jnp.sum(w**2 * z**2))
-
-    def vector_field(t, state, args):
-        q, v = state
-        w = q[1 : n + 1]
-        a = jnp.concatenate([jnp.ones(1), jnp.zeros(n), w])
-        grad_v = jax.grad(potential)(q)
-        adot_v = v[1 : n + 1] @ v[n + 1 :]
-        multiplier = (a @ grad_v - adot_v) / (a @ a)
-        return v, -grad_v + multiplier * a
-
-    solution = diffrax.diffeqsolve(
-        diffrax.ODETerm(vector_field),
-        diffrax.Dopri8(),
-        0.0,
-        t1,
-        0.01,
-        (q0, p0),
-        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13),
-        max_steps=100_000,
-    )
-    return jax.tree.map(lambda y: y[-1], solution.ys)
-
-
 def reference_final_state(system, y0, t1, args=None):
     """SPEC §4: the index-1 ODE (`NonholonomicSystem.vf`, the multiplier eliminated by
-    autodiff) by Dopri8 at rtol = atol = 1e-13."""
-    solution = diffrax.diffeqsolve(
-        system,
-        diffrax.Dopri8(),
-        0.0,
-        t1,
-        0.01,
-        y0,
-        args=args,
-        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13),
-        max_steps=100_000,
-    )
+    autodiff) by adaptive Dopri8 at rtol = atol = 1e-13 (`nhjax.integrate_adaptive`)."""
+    solution = nh.integrate_adaptive(system, y0, t1, args, rtol=1e-13, atol=1e-13)
     return jax.tree.map(lambda y: y[-1], solution.ys)
 
 

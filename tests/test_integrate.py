@@ -1,5 +1,6 @@
 """The time loop: saving, statistics, jit/vmap, compile-once, and bad input."""
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -152,3 +153,60 @@ def test_solution_is_a_pytree():
     solution = nh.integrate(QUARTIC.adapted, METHOD, QUARTIC.initial_state(0.5), 0.1, 5)
     assert isinstance(solution, eqx.Module)
     assert len(jax.tree.leaves(solution)) >= 5
+
+
+DISK = nh.examples.rolling_disk()
+GEARBOX = nh.examples.gearbox()
+
+
+def test_adaptive_index1_solution_matches_the_rolling_disk_exact_solution():
+    """The baseline, and the reference of every convergence test: Dopri8 on the index-1
+    ODE at tight tolerance against the disk's closed-form motion, at several times."""
+    x0 = DISK.initial_state(x1=0.3, theta=0.2, rho1=1.5, rho2=0.7)
+    times = jnp.array([0.0, 2.5, 5.0, 10.0])
+    solution = nh.integrate_adaptive(
+        DISK.canonical, DISK.from_adapted(x0), 10.0, DISK.args, save_at=times, rtol=1e-12, atol=1e-12
+    )
+    assert solution.result == nh.RESULTS.successful
+    exact = jax.vmap(lambda t: jnp.concatenate(DISK.from_adapted(DISK.exact_solution(t, x0))))(times)
+    np.testing.assert_allclose(jnp.concatenate(solution.ys, axis=1), exact, atol=1e-9)
+    assert solution.energy.shape == (4,) and solution.constraint.shape == (4, 2)
+    assert int(solution.stats["num_steps"]) > 0
+
+
+def test_fixed_step_tsit5_baseline_is_fifth_order_and_preserves_neither_invariant():
+    y0 = GEARBOX.random_initial_state(jax.random.key(3))
+    t1 = 5.0
+    reference = nh.integrate_adaptive(GEARBOX.canonical, y0, t1, rtol=1e-13, atol=1e-13)
+    step_sizes = [0.1, 0.05, 0.025]
+    errors = []
+    for h in step_sizes:
+        n = round(t1 / h)
+        solution = nh.integrate(GEARBOX.canonical, diffrax.Tsit5(), y0, h, n, save_every=n)
+        errors.append(max(float(jnp.max(jnp.abs(a[-1] - b[-1]))) for a, b in zip(solution.ys, reference.ys)))
+    slope = np.polyfit(np.log(step_sizes), np.log(errors), 1)[0]
+    # Still a little pre-asymptotic at these steps (error ratios 60, then 40, toward 32).
+    assert 4.5 <= slope <= 6.0, errors
+    long = nh.integrate(GEARBOX.canonical, diffrax.Tsit5(), y0, 0.2, 5_000, save_every=50)
+    assert float(jnp.max(jnp.abs(long.energy / long.energy[0] - 1))) > 1e-10
+    assert float(jnp.max(jnp.abs(long.constraint))) > 1e-10
+
+
+def test_adaptive_baseline_bad_input_and_result_codes():
+    y0 = GEARBOX.random_initial_state(jax.random.key(0))
+    with pytest.raises(ValueError, match="t1 must be after t0"):
+        nh.integrate_adaptive(GEARBOX.canonical, y0, 0.0)
+    with pytest.raises(ValueError, match="rtol and atol"):
+        nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, rtol=0.0)
+    violating = (y0[0], y0[1] + 1.0)
+    solution = nh.integrate_adaptive(GEARBOX.canonical, violating, 1.0, throw=False)
+    assert solution.result == nh.RESULTS.constraint_violated_initially
+    with pytest.raises(Exception, match="constraint"):
+        nh.integrate_adaptive(GEARBOX.canonical, violating, 1.0)
+    too_few = nh.integrate_adaptive(GEARBOX.canonical, y0, 100.0, max_steps=5, throw=False)
+    assert too_few.result != nh.RESULTS.successful
+    batch = jax.vmap(lambda q, p: nh.integrate_adaptive(GEARBOX.canonical, (q, p), 1.0, throw=False).result)(
+        jnp.stack([y0[0], violating[0]]), jnp.stack([y0[1], violating[1]])
+    )
+    np.testing.assert_array_equal(batch == nh.RESULTS.successful, [True, False])
+    np.testing.assert_array_equal(batch == nh.RESULTS.constraint_violated_initially, [False, True])
