@@ -4,6 +4,7 @@ description, and writing the results."""
 import json
 import pathlib
 import platform
+import statistics
 import time
 
 import jax
@@ -25,3 +26,28 @@ def write(results: dict, path: str) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(dict(results, machine=machine(), jax=jax.__version__), indent=2))
     print(f"wrote {out}")
+
+
+def per_step(system, method, y0, steps, repeats, args=None, dt=0.1):
+    """(median µs/step, compile s, root-finder iterations/step or None) for one
+    trajectory of `steps` steps of `method` through `nhjax.integrate`."""
+    import nhjax as nh
+
+    run = jax.jit(lambda y0: nh.integrate(system, method, y0, dt, steps, args=args, save_every=steps))
+    compile_s = timed(lambda y: run.lower(y).compile(), y0)
+    solution = run(y0)
+    jax.block_until_ready(solution)
+    times = [timed(run, y0) for _ in range(repeats)]
+    total = solution.stats["root_find_steps"]
+    iterations = None if total is None else float(total) / steps
+    return statistics.median(times) / steps * 1e6, compile_s, iterations
+
+
+def batch_rate(system, method, states, steps, repeats, args=None, dt=0.1):
+    """Median trajectory-steps/s of a vmapped batch (leading axis of `states`)."""
+    import nhjax as nh
+
+    run = jax.jit(jax.vmap(lambda y0: nh.integrate(system, method, y0, dt, steps, args=args, save_every=steps).ys))
+    timed(run, states)
+    size = jax.tree.leaves(states)[0].shape[0]
+    return size * steps / statistics.median([timed(run, states) for _ in range(repeats)])

@@ -20,18 +20,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import timed, write  # noqa: E402
-
-
-def _per_step(system, method, y0, steps, repeats):
-    """(median µs/step, compile s, root-finder iterations/step) for one trajectory."""
-    run = jax.jit(lambda y0: nh.integrate(system, method, y0, 0.1, steps, save_every=steps))
-    compile_s = timed(lambda y: run.lower(y).compile(), y0)
-    solution = run(y0)
-    jax.block_until_ready(solution)
-    times = [timed(run, y0) for _ in range(repeats)]
-    iterations = float(solution.stats["root_find_steps"]) / steps
-    return statistics.median(times) / steps * 1e6, compile_s, iterations
+from _timing import per_step, timed, write  # noqa: E402
 
 
 def main():
@@ -48,11 +37,11 @@ def main():
     y0 = gearbox.random_initial_state(jax.random.key(0))
     method = nh.GonzalezR()
 
-    single_us, compile_s, iterations = _per_step(gearbox.canonical, method, y0, options.steps, options.repeats)
-    finite_us, finite_compile_s, finite_iterations = _per_step(
+    single_us, compile_s, iterations = per_step(gearbox.canonical, method, y0, options.steps, options.repeats)
+    finite_us, finite_compile_s, finite_iterations = per_step(
         gearbox.canonical, nh.GonzalezR(derivative="central_difference"), y0, options.steps, options.repeats
     )
-    direct_us, direct_compile_s, direct_iterations = _per_step(
+    direct_us, direct_compile_s, direct_iterations = per_step(
         gearbox.canonical, nh.GonzalezF(), y0, options.steps, options.repeats
     )
 
@@ -77,10 +66,10 @@ def main():
 
     quartic = nh.examples.chaotic_quartic(3)
     x0 = quartic.initial_state(0.7)
-    quartic_r_us, quartic_r_compile_s, _ = _per_step(
+    quartic_r_us, quartic_r_compile_s, _ = per_step(
         quartic.canonical, method, quartic.from_adapted(x0), options.steps // 4, options.repeats
     )
-    quartic_dg_us, quartic_dg_compile_s, _ = _per_step(
+    quartic_dg_us, quartic_dg_compile_s, _ = per_step(
         quartic.adapted, nh.DiscreteGradient(), x0, options.steps // 4, options.repeats
     )
 
