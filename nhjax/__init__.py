@@ -20,7 +20,13 @@ from ._solver import (
     DiscreteGradient as DiscreteGradient,
     GonzalezF as GonzalezF,
     GonzalezR as GonzalezR,
+    IDLA as IDLA,
+    LOBATTO_IIIA_B_C_CSTAR_D_2 as LOBATTO_IIIA_B_C_CSTAR_D_2,
+    lobatto_spark_tableau as lobatto_spark_tableau,
     midpoint_structure as midpoint_structure,
+    SIDLA as SIDLA,
+    SPARK as SPARK,
+    SPARKTableau as SPARKTableau,
 )
 from ._system import AbstractSystem as AbstractSystem, SkewGradientSystem as SkewGradientSystem
 

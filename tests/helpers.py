@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import nhjax as nh
 
@@ -45,3 +46,98 @@ def final_state_errors(system, method, y0, t1, step_sizes, reference, args=None,
         difference = jax.tree.map(lambda a, b: jnp.max(jnp.abs(a - b)), observe(final), reference)
         errors.append(float(max(jax.tree.leaves(difference))))
     return errors
+
+
+def runs_at_step_sizes(example, method, y0, step_sizes, n_steps):
+    """`n_steps` steps of `method` from `y0` at each of `step_sizes`, one vmapped run
+    (`throw=False`), every step saved."""
+
+    def run(dt):
+        return nh.integrate(example.canonical, method, y0, dt, n_steps, args=example.args, throw=False)
+
+    return jax.vmap(run)(jnp.array(step_sizes))
+
+
+def errors_at(runs, step_sizes, t1, reference):
+    """For `runs_at_step_sizes` output: max |y(t1) - reference| at each step size."""
+    errors = []
+    for index, h in enumerate(step_sizes):
+        step = round(t1 / h)
+        final = (runs.ys[0][index, step], runs.ys[1][index, step])
+        errors.append(max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(final, reference)))
+    return errors
+
+
+def energy_variance_slopes(system, method, states, sizes=(0.2, 0.1), n_steps=20_000):
+    """For each step size h, the slope in t of the sample variance over `states` of
+    H(t) - H(0), to t = n_steps h, fitted with an intercept over the last 90%; all runs
+    in one compiled batch."""
+    sizes = jnp.repeat(jnp.array(sizes), states[0].shape[0])
+    batch = jax.tree.map(lambda y: jnp.concatenate([y, y]), states)
+
+    def run(y, h):
+        return nh.integrate(system, method, y, h, n_steps, save_every=n_steps // 40)
+
+    solution = jax.jit(jax.vmap(run))(batch, sizes)
+    assert bool(jnp.all(solution.result == nh.RESULTS.successful))
+    slopes = []
+    for h, energy, times in zip(*(jnp.split(x, 2) for x in (sizes, solution.energy, solution.ts))):
+        variance = np.var(np.asarray(energy - energy[:, :1]), axis=0, ddof=1)
+        times = np.asarray(times[0])
+        late = times >= times[-1] / 10
+        slopes.append((float(h[0]), float(np.polyfit(times[late], variance[late], 1)[0])))
+    return slopes
+
+
+def check_per_trajectory_result_codes(method):
+    """Under jit and vmap, a batch of three: a NaN start, a trajectory that runs into a
+    singular potential mid-run, and a good one. Each gets its own code; the good one
+    equals its single run."""
+
+    def hamiltonian(q, p, args):
+        # sqrt(1 - q3) pulls q3 towards 1, past which it is NaN.
+        return 0.5 * (p @ p + q[0] ** 2 + q[1] ** 2) + jnp.sqrt(1.0 - q[2])
+
+    def constraints(q, args):
+        return jnp.array([[1.0, jnp.sin(q[2]), 0.0]])
+
+    system = nh.NonholonomicSystem(hamiltonian, constraints)
+
+    def start(q3, p3):
+        q = jnp.array([0.1, 0.2, q3])
+        return q, system.project_momentum(q, jnp.array([0.5, -0.5, p3]))
+
+    def run(y0):
+        return nh.integrate(system, method, y0, 0.1, 40, throw=False)
+
+    good = start(-3.0, -0.5)
+    singular = start(0.5, 1.0)
+    nan = jax.tree.map(lambda y: y.at[0].set(jnp.nan), good)
+    batch = jax.jit(jax.vmap(run))(jax.tree.map(lambda *y: jnp.stack(y), nan, singular, good))
+    assert bool((batch.result == nh.RESULTS.nonfinite_initial_state)[0])
+    # NaN forces make the root find fail (or, were it to return, a non-finite state).
+    failed = (batch.result == nh.RESULTS.root_find_not_converged) | (
+        batch.result == nh.RESULTS.nonfinite_step
+    )
+    assert bool(failed[1])
+    assert bool((batch.result == nh.RESULTS.successful)[2])
+    assert not bool(jnp.any(jnp.isfinite(batch.ys[0][0, 1:])))
+    finite = jnp.all(jnp.isfinite(batch.ys[0][1]), axis=1)
+    assert bool(finite[1]) and not bool(finite[-1])  # it fails after a few steps, and stays failed
+    single = run(good)
+    np.testing.assert_allclose(batch.ys[0][2], single.ys[0], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(batch.ys[1][2], single.ys[1], rtol=0, atol=1e-14)
+    with pytest.raises(Exception, match="not solved to tolerance|non-finite state"):
+        nh.integrate(system, method, singular, 0.1, 40)
+
+
+def check_float32(method, example, y0):
+    """1000 steps in float32 on `example`: float32 states, the constraint within 100
+    eps, the energy within the method's own error."""
+    y0 = jax.tree.map(lambda y: y.astype(jnp.float32), y0)
+    solution = nh.integrate(example.canonical, method, y0, 0.1, 1000, args=example.args, save_every=10)
+    assert solution.result == nh.RESULTS.successful
+    assert solution.ys[0].dtype == jnp.float32
+    eps = float(jnp.finfo(jnp.float32).eps)
+    assert float(jnp.max(jnp.abs(solution.constraint))) <= 100 * eps
+    assert relative_energy_error(solution) < 1e-2

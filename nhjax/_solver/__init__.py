@@ -6,3 +6,11 @@ from .discrete_gradient import (
 )
 from .gonzalez_r import GonzalezR as GonzalezR
 from .gonzalez_f import GonzalezF as GonzalezF
+from .idla import IDLA as IDLA
+from .sidla import SIDLA as SIDLA
+from .spark import (
+    LOBATTO_IIIA_B_C_CSTAR_D_2 as LOBATTO_IIIA_B_C_CSTAR_D_2,
+    lobatto_spark_tableau as lobatto_spark_tableau,
+    SPARK as SPARK,
+    SPARKTableau as SPARKTableau,
+)

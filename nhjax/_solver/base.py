@@ -58,6 +58,13 @@ def increment_scale(x: Array) -> Array:
     return lax.stop_gradient(1 + jnp.abs(x))
 
 
+def positive_unit(x: Array) -> Array:
+    """`x`, or 1 where `x` is 0 (a normalisation that must not divide by zero; a zero
+    constraint matrix then shows up as a singular root-find Jacobian)."""
+    x = lax.stop_gradient(x)
+    return jnp.where(x > 0, x, jnp.ones_like(x))
+
+
 class AbstractMethod(diffrax.AbstractSolver):
     r"""A one-step method whose step is a root find: the generic stepper.
 
