@@ -9,7 +9,7 @@ import optimistix as optx
 from .._discrete_gradient import gonzalez
 from .._nonholonomic import NonholonomicSystem
 from .._results import RESULTS
-from .base import AbstractMethod, increment_scale
+from .base import AbstractMethod, increment_scale, positive_unit
 from .chord import midpoint_gradient
 
 
@@ -27,7 +27,11 @@ class GonzalezF(AbstractMethod):
     Second order and time-symmetric.
 
     Each step solves for the scaled increment $(z' - z)/s$, $s = 1 + |z|$ (elementwise),
-    and the impulse $h\lambda$, from the explicit Euler predictor of the index-1
+    and the impulse $h\lambda$, with the constraint equation divided by
+    $\max|A(q)|\,\max(1 + |\partial_pH(q, p)|)$ at the start so that it is of the size of
+    the others (a smaller row, such as one scaled by $h$ or by the size of the positions,
+    would amplify its rounding in the impulse through the inverse Jacobian, past the
+    root finder's tolerance), from the explicit Euler predictor of the index-1
     equations.
 
     **Arguments:** `root_finder`, `root_find_max_steps` as for `nhjax.DiscreteGradient`.
@@ -51,10 +55,13 @@ class GonzalezF(AbstractMethod):
         guess = jnp.concatenate(
             [h * jnp.concatenate([velocity, acceleration]) / scale, h * system.multiplier(y0, args)]
         )
-        return guess, (system, z, h, scale, args)
+        constraint_unit = positive_unit(
+            jnp.max(jnp.abs(system.constraints(q, args))) * jnp.max(1 + jnp.abs(velocity))
+        )
+        return guess, (system, z, h, scale, constraint_unit, args)
 
     def residual(self, unknowns, data, discrete_gradient=gonzalez):
-        system, z, h, scale, args = data
+        system, z, h, scale, constraint_unit, args = data
         (n2,) = z.shape
         n = n2 // 2
         u, impulse = unknowns[:n2], unknowns[n2:]
@@ -64,9 +71,8 @@ class GonzalezF(AbstractMethod):
         a = system.constraints(0.5 * (z[:n] + z1[:n]), args)
         flow = jnp.concatenate([gradient[n:], -gradient[:n]])
         force = jnp.concatenate([jnp.zeros((n,), z.dtype), a.T @ impulse])
-        velocity_scale = jnp.max(scale[:n])
         return jnp.concatenate(
-            [u - (h * flow + force) / scale, (h / velocity_scale) * (a @ gradient[n:])]
+            [u - (h * flow + force) / scale, (a @ gradient[n:]) / constraint_unit]
         )
 
     def simplified_residual(self, unknowns, data):
@@ -75,7 +81,7 @@ class GonzalezF(AbstractMethod):
         return self.residual(unknowns, data, midpoint_gradient)
 
     def complete(self, unknowns, data):
-        _, z, _, scale, _ = data
+        _, z, _, scale, _, _ = data
         n = z.shape[0] // 2
         z1 = z + scale * unknowns[: 2 * n]
         return (z1[:n], z1[n:]), RESULTS.successful, None
