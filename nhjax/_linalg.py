@@ -33,6 +33,23 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
     return solution[:, 0] if vector else solution
 
 
+def inverse(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """$a^{-1}$ by Gauss--Jordan elimination with partial pivoting (rows swapped by a
+    gather per column), for a nonsingular `a`; a singular one gives non-finite entries."""
+    n = a.shape[0]
+    if n > UNROLL_LIMIT:
+        return jnp.linalg.inv(a)
+    augmented = jnp.concatenate([a, jnp.eye(n, dtype=a.dtype)], axis=1)
+    rows = jnp.arange(n)
+    for j in range(n):
+        pivot = j + jnp.argmax(jnp.abs(augmented[j:, j]))
+        order = jnp.where(rows == j, pivot, jnp.where(rows == pivot, j, rows))
+        augmented = augmented[order]
+        row = augmented[j] / augmented[j, j]
+        augmented = (augmented - jnp.outer(augmented[:, j], row)).at[j].set(row)
+    return augmented[:, n:]
+
+
 def safe_norm(v: Float[Array, " n"]) -> Float[Array, ""]:
     """|v|, with derivative 0 (not NaN) at v = 0."""
     square = v @ v

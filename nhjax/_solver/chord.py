@@ -21,6 +21,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
+from .._linalg import inverse
+
 
 def midpoint_gradient(f, x, x1, args):
     r"""$\nabla f(\tfrac{x + x'}{2})$: the Gonzalez discrete gradient without its
@@ -32,7 +34,7 @@ def invert(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     """The explicit inverse of the (well-conditioned, I - O(h)) chord matrix: one
     matrix-vector product per iteration instead of two triangular solves. Its rounding
     changes only the contraction rate, not the root."""
-    return jnp.linalg.inv(jacobian)
+    return inverse(jacobian)
 
 
 class _ChordState(eqx.Module):

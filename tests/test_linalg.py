@@ -1,0 +1,47 @@
+"""The unrolled small dense linear algebra against LAPACK, on random matrices."""
+
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+
+from nhjax._linalg import inverse, safe_norm, solve_spd, UNROLL_LIMIT
+
+
+settings.register_profile("nhjax", max_examples=25, deadline=None, derandomize=True)
+settings.load_profile("nhjax")
+
+
+@given(n=st.integers(1, 9), seed=st.integers(0, 2**31 - 1))
+def test_inverse_with_pivoting_matches_lapack(n, seed):
+    a = jax.random.normal(jax.random.key(seed), (n, n))
+    np.testing.assert_allclose(inverse(a), jnp.linalg.inv(a), rtol=1e-9, atol=1e-9 * float(jnp.abs(jnp.linalg.inv(a)).max()))
+
+
+def test_inverse_needs_pivoting_and_reports_singular_matrices():
+    swap = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    np.testing.assert_array_equal(inverse(swap), jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.5]]))
+    assert not bool(jnp.all(jnp.isfinite(inverse(jnp.array([[1.0, 2.0], [2.0, 4.0]])))))
+
+
+@given(n=st.integers(1, 9), seed=st.integers(0, 2**31 - 1))
+def test_spd_solve_matches_lapack(n, seed):
+    b = jax.random.normal(jax.random.key(seed), (n, n))
+    a = b @ b.T + n * jnp.eye(n)
+    rhs = jnp.arange(1.0, n + 1.0)
+    np.testing.assert_allclose(solve_spd(a, rhs), jnp.linalg.solve(a, rhs), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [UNROLL_LIMIT + 1])
+def test_large_sizes_fall_back_to_lapack(n):
+    a = jnp.eye(n) * 2.0
+    np.testing.assert_allclose(inverse(a), 0.5 * jnp.eye(n))
+    np.testing.assert_allclose(solve_spd(a, jnp.ones(n)), 0.5 * jnp.ones(n))
+
+
+def test_safe_norm_has_a_zero_gradient_at_zero():
+    assert float(safe_norm(jnp.zeros(3))) == 0.0
+    np.testing.assert_array_equal(jax.grad(safe_norm)(jnp.zeros(3)), jnp.zeros(3))
+    np.testing.assert_allclose(safe_norm(jnp.array([3.0, 4.0])), 5.0)
