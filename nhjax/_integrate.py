@@ -48,6 +48,14 @@ def _trace_floats(args: PyTree) -> PyTree:
     )
 
 
+def _finite_result(ys: PyTree) -> RESULTS:
+    """`nonfinite_step` if a saved state is not finite. nhjax's methods report such a
+    step themselves, but a diffrax solver at fixed steps does not, and a NaN state
+    persists to the final save, which is always saved."""
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(ys)]))
+    return RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_step)
+
+
 def _state_dtype(y0: PyTree) -> Any:
     return jnp.result_type(*jax.tree.leaves(y0))
 
@@ -160,6 +168,7 @@ def _integrate(system, method, y0, dt, t0, args, *, n_steps, save_every, progres
         initial_result,
         getattr(method_state, "failure", RESULTS.successful),
         from_diffrax(solution.result),
+        _finite_result(ys),
     )
     if throw:
         ys = result.error_if(ys, result != RESULTS.successful)
@@ -258,7 +267,7 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, *, rtol, atol
         throw=False,
     )
     ys, observed = solution.ys
-    result = first_failure(initial_result, from_diffrax(solution.result))
+    result = first_failure(initial_result, from_diffrax(solution.result), _finite_result(ys))
     if throw:
         ys = result.error_if(ys, result != RESULTS.successful)
     stats = dict(

@@ -210,3 +210,13 @@ def test_adaptive_baseline_bad_input_and_result_codes():
     )
     np.testing.assert_array_equal(batch == nh.RESULTS.successful, [True, False])
     np.testing.assert_array_equal(batch == nh.RESULTS.constraint_violated_initially, [False, True])
+
+
+def test_a_diffrax_solver_that_blows_up_gets_a_result_code():
+    """Explicit Euler far beyond its stability limit overflows to inf and NaN: a
+    fixed-step diffrax solver does not report that itself, nh.integrate does."""
+    y0 = GEARBOX.random_initial_state(jax.random.key(0))
+    solution = nh.integrate(GEARBOX.canonical, diffrax.Euler(), y0, 50.0, 400, save_every=400, throw=False)
+    assert solution.result == nh.RESULTS.nonfinite_step
+    with pytest.raises(Exception, match="finite"):
+        nh.integrate(GEARBOX.canonical, diffrax.Euler(), y0, 50.0, 400, save_every=400)
