@@ -14,6 +14,7 @@ from ._integrate import (
 )
 from ._nonholonomic import NonholonomicSystem as NonholonomicSystem
 from ._results import RESULTS as RESULTS
+from ._runner import run_chunked as run_chunked
 from ._solver import (
     AbstractMethod as AbstractMethod,
     averaged_structure as averaged_structure,

@@ -1,7 +1,11 @@
 """The `nhjax` command."""
 
 import argparse
+import math
+import pathlib
+import shutil
 import sys
+import textwrap
 import time
 
 
@@ -45,6 +49,155 @@ def _demo(arguments) -> int:
     return 0
 
 
+# The choices are listed here rather than taken from the library, so that `--help` and
+# argument errors answer without importing JAX.
+SYSTEMS = {
+    "gearbox": "the gearbox of §4.4 (Figure 3) from a random state on the constraint (--seed, default 0)",
+    "quartic": "the chaotic quartic of §4.1, n = 3, H = 3.06: the state of angle --angle (default 0.7), "
+    "or of a random angle with --seed",
+    "sleigh": "the Chaplygin sleigh of §4.2, J = 8, a = m = 1, from Figure 2's start "
+    "(x1 = -5, x2 = 0, theta = 0.1, rho1 = 0.001, rho2 = -0.6)",
+    "disk": "the rolling disk of §2 (m = r = 1, J_theta = 1/4, J_phi = 1/2) with rho1 = 1.3, rho2 = 0.9",
+}
+METHODS = {  # name: (the paper's name, what it keeps)
+    "gonzalez-r": ("GONZALEZ-R", "§3.3, discrete gradient on the reduced system: energy and constraint to roundoff"),
+    "gonzalez-f": ("GONZALEZ-F", "§3.3, the direct method: energy to roundoff, the constraint not"),
+    "sidla": ("SI-DLA", "constraint to roundoff, energy O(h^2)"),
+    "idla": ("I-DLA", "constraint to roundoff, energy O(h^2)"),
+    "spark": ("SPARK", "2-stage Lobatto IIIA-B-C-C*-D: constraint to roundoff, energy O(h^2)"),
+    "tsit5": ("Tsit5", "fixed steps on the index-1 ODE: the non-geometric baseline"),
+}
+FIGURES = ("fig1", "fig2", "fig3", "fig4")
+_DEFAULT_ANGLE = 0.7
+
+
+def _problem(arguments):
+    """(system, initial state (q, p), args, a description) of the chosen example, in
+    canonical coordinates."""
+    import jax
+
+    import nhjax as nh
+
+    if arguments.system == "gearbox":
+        gearbox = nh.examples.gearbox()
+        seed = 0 if arguments.seed is None else arguments.seed
+        state = gearbox.random_initial_state(jax.random.key(seed))
+        return gearbox.canonical, state, gearbox.args, f"gearbox (§4.4), random state of seed {seed}"
+    if arguments.system == "quartic":
+        quartic = nh.examples.chaotic_quartic(3)
+        if arguments.seed is None:
+            angle = _DEFAULT_ANGLE if arguments.angle is None else arguments.angle
+            x0, start = quartic.initial_state(angle), f"angle {angle}"
+        else:
+            x0 = quartic.random_initial_states(jax.random.key(arguments.seed), 1)[0]
+            start = f"random angle of seed {arguments.seed}"
+        return quartic.canonical, quartic.from_adapted(x0), quartic.args, f"chaotic quartic (§4.1), n = 3, H = 3.06, {start}"
+    if arguments.system == "sleigh":
+        sleigh = nh.examples.chaplygin_sleigh(J=8.0, a=1.0, m=1.0)
+        state = sleigh.from_adapted(sleigh.initial_state())
+        return sleigh.canonical, state, sleigh.args, "Chaplygin sleigh (§4.2), J = 8, a = m = 1, Figure 2's start"
+    disk = nh.examples.rolling_disk()
+    state = disk.from_adapted(disk.initial_state(rho1=1.3, rho2=0.9))
+    return disk.canonical, state, disk.args, "rolling disk (§2), rho = (1.3, 0.9)"
+
+
+def _method(name):
+    import diffrax
+
+    import nhjax as nh
+
+    methods = {
+        "gonzalez-r": nh.GonzalezR,
+        "gonzalez-f": nh.GonzalezF,
+        "sidla": nh.SIDLA,
+        "idla": nh.IDLA,
+        "spark": nh.SPARK,
+        "tsit5": diffrax.Tsit5,
+    }
+    return methods[name]()
+
+
+def _simulate(arguments, n_steps: int) -> int:
+    """Run one example with one method through `run_chunked`, write the trajectory and
+    print what was conserved."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    import nhjax as nh
+    from ._runner import _write_atomically, run_chunked
+
+    system, y0, args, description = _problem(arguments)
+    method = _method(arguments.method)
+    out = pathlib.Path(arguments.out or f"{arguments.system}-{arguments.method}.npz")
+    chunks = out.with_name(out.name + ".chunks")
+    on_disk = len(list(chunks.glob("chunk_*.npz")))
+    start = time.perf_counter()
+    try:
+        solution = run_chunked(
+            system, method, y0, arguments.dt, n_steps, directory=chunks, args=args,
+            save_every=arguments.save_every, chunk_steps=arguments.chunk_steps,
+            progress=arguments.progress,
+        )
+    except (RuntimeError, ValueError) as error:  # a failed chunk, or a different run in `chunks`
+        print(f"nhjax simulate: error: {error}", file=sys.stderr)
+        return 1
+    elapsed = time.perf_counter() - start
+
+    q, p = (np.asarray(leaf) for leaf in solution.ys)
+    trajectory = dict(
+        ts=np.asarray(solution.ts), q=q, p=p, energy=np.asarray(solution.energy),
+        constraint=np.asarray(solution.constraint),
+    )
+    _write_atomically(out, lambda file: np.savez(file, **trajectory))
+    # The chunks only served to resume; the trajectory is complete in `out` now.
+    shutil.rmtree(chunks)
+
+    energy = trajectory["energy"]
+    scale = abs(energy[0]) if energy[0] != 0 else 1.0  # relative unless H(0) = 0
+    print(f"{description}; {METHODS[arguments.method][0]}, h = {arguments.dt}, t1 = {arguments.t1}")
+    print(f"  steps                              {n_steps}" + (f" (resumed: {on_disk} chunks were on disk)" if on_disk else ""))
+    print(f"  saves                              {energy.shape[0]}, written to {out}")
+    print(f"  max relative energy error          {np.max(np.abs(energy - energy[0])) / scale:.2e}")
+    print(f"  max constraint error |A(q) dH/dp|  {np.max(np.abs(trajectory['constraint'])):.2e}")
+    # Fixed steps of an explicit solver can blow up without a failure code.
+    finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(p), axis=1)
+    if np.all(finite):
+        outcome = nh.RESULTS[solution.result] or "successful"
+    else:
+        outcome = f"the states are not finite from t = {trajectory['ts'][np.argmin(finite)]:g} on"
+    print(f"  result                             {outcome}")
+    print(f"  wall time (with compilation)       {elapsed:.2f} s")
+    return 0 if np.all(finite) else 1
+
+
+def _reproduce(arguments) -> int:
+    # `figures` is the default "all", or the list given (repeats dropped, order kept).
+    figures = FIGURES if "all" in arguments.figures else tuple(dict.fromkeys(arguments.figures))
+    try:
+        from ._reproduce import reproduce
+    except ModuleNotFoundError as error:
+        if error.name != "nhjax._reproduce":
+            raise
+        print("nhjax reproduce: error: this installation has no nhjax._reproduce.", file=sys.stderr)
+        return 1
+    results = reproduce(figures, quick=arguments.quick, out=arguments.out, progress=arguments.progress)
+    print(f"Report, figures and results.json in {arguments.out}")
+    for name, result in results.items():
+        if isinstance(result, dict) and "verdict" in result:
+            agreement = "agrees with the paper" if result.get("agrees") else "DOES NOT AGREE with the paper"
+            print(f"  {name}: {agreement}: {result['verdict']}")
+    return 0
+
+
+def _listing(entries: dict) -> str:
+    return "\n".join(
+        textwrap.fill(text, 80, initial_indent=f"  {name:<12}", subsequent_indent=" " * 14)
+        for name, text in entries.items()
+    )
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="nhjax",
@@ -57,12 +210,96 @@ def main(argv=None) -> int:
     demo.add_argument("--dt", type=float, default=0.5, help="step size h (default 0.5, as in Figure 2)")
     demo.add_argument("--steps", type=int, default=2000, help="number of steps (default 2000)")
     demo.add_argument("--progress", action="store_true", help="show a progress bar")
+
+    simulate = commands.add_parser(
+        "simulate",
+        help="integrate one of the paper's systems with one method and save the trajectory",
+        description=textwrap.fill(
+            "Integrate one of the paper's systems (canonical coordinates, float64) with one "
+            "method, write the saved trajectory to an .npz file (arrays ts, q, p, energy, "
+            "constraint) and print the energy and constraint errors. The run goes in chunks "
+            "kept in FILE.chunks/ until FILE is written, so an interrupted run continues "
+            "where it stopped when rerun with the same arguments.", 80
+        ),
+        epilog=f"systems:\n{_listing(SYSTEMS)}\n\nmethods:\n"
+        + _listing({name: f"{label} ({text})" for name, (label, text) in METHODS.items()}),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    simulate.add_argument("system", choices=SYSTEMS, metavar="SYSTEM", help=f"one of {', '.join(SYSTEMS)} (see below)")
+    simulate.add_argument("--method", required=True, choices=METHODS, metavar="METHOD", help=f"one of {', '.join(METHODS)} (see below)")
+    simulate.add_argument("--dt", type=float, required=True, metavar="H", help="step size h > 0")
+    simulate.add_argument("--t1", type=float, required=True, metavar="T", help="final time, a whole number of steps: t1/h steps are taken")
+    simulate.add_argument("--save-every", type=int, default=1, metavar="K", help="save every K-th step; K must divide t1/h (default 1)")
+    simulate.add_argument("--out", metavar="FILE", help="the .npz file to write (default SYSTEM-METHOD.npz)")
+    simulate.add_argument(
+        "--chunk-steps", type=int, metavar="N",
+        help="steps per chunk written to FILE.chunks/, a multiple of K (default about 50 000)",
+    )
+    simulate.add_argument("--seed", type=int, metavar="S", help="random initial state of this seed (gearbox, quartic)")
+    simulate.add_argument("--angle", type=float, metavar="A", help=f"quartic only: the initial state of angle A (default {_DEFAULT_ANGLE})")
+    simulate.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="show a progress bar (default on)")
+
+    reproduce = commands.add_parser(
+        "reproduce",
+        help="rerun the paper's experiments and write figures, results.json and report.md",
+        description="Rerun the experiments behind the paper's figures (and a work-precision "
+        "comparison, fig4), write the figures as PNG, the numbers in results.json and a "
+        "report.md that says, experiment by experiment, whether the paper's claims hold. "
+        "Long runs resume from their chunks in DIR if interrupted.",
+    )
+    reproduce.add_argument(
+        "figures", nargs="*", choices=(*FIGURES, "all"), default="all", metavar="FIGURE",
+        help=f"which to reproduce: any of {', '.join(FIGURES)}, or all (default)",
+    )
+    reproduce.add_argument("--quick", action="store_true", help="smaller runs (minutes, not a quarter of an hour) that still show each claim")
+    reproduce.add_argument("--out", type=pathlib.Path, default=pathlib.Path("nhjax-reproduction"), metavar="DIR", help="output folder (default ./nhjax-reproduction)")
+    reproduce.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="show progress bars (default on)")
+
     arguments = parser.parse_args(argv)
-    if arguments.dt <= 0:
+    if arguments.command == "demo":
+        if arguments.dt <= 0:
+            parser.error(f"--dt must be positive, got {arguments.dt}")
+        if arguments.steps < 1:
+            parser.error(f"--steps must be a positive integer, got {arguments.steps}")
+        return _demo(arguments)
+    if arguments.command == "reproduce":
+        return _reproduce(arguments)
+    return _simulate(arguments, _checked_steps(simulate, arguments))
+
+
+def _checked_steps(parser, arguments) -> int:
+    """The number of steps t1/h, after checking the simulate options; argparse errors
+    (exit status 2) otherwise."""
+    if not (math.isfinite(arguments.dt) and arguments.dt > 0):
         parser.error(f"--dt must be positive, got {arguments.dt}")
-    if arguments.steps < 1:
-        parser.error(f"--steps must be a positive integer, got {arguments.steps}")
-    return _demo(arguments)
+    if not (math.isfinite(arguments.t1) and arguments.t1 > 0):
+        parser.error(f"--t1 must be positive, got {arguments.t1}")
+    n_steps = round(arguments.t1 / arguments.dt)
+    if n_steps < 1 or abs(n_steps * arguments.dt - arguments.t1) > 1e-9 * arguments.t1:
+        parser.error(
+            f"--t1 must be a whole number of steps: t1/h = {arguments.t1 / arguments.dt:g}"
+        )
+    if arguments.save_every < 1 or n_steps % arguments.save_every:
+        parser.error(
+            f"--save-every must be a positive divisor of the number of steps t1/h = "
+            f"{n_steps}, got {arguments.save_every}"
+        )
+    if arguments.chunk_steps is not None and (
+        arguments.chunk_steps < 1 or arguments.chunk_steps % arguments.save_every
+    ):
+        parser.error(
+            f"--chunk-steps must be a positive multiple of --save-every "
+            f"{arguments.save_every}, got {arguments.chunk_steps}"
+        )
+    if arguments.seed is not None and arguments.system not in ("gearbox", "quartic"):
+        parser.error(f"--seed needs a system with random initial states (gearbox, quartic), not {arguments.system}")
+    if arguments.seed is not None and arguments.seed < 0:
+        parser.error(f"--seed must be a non-negative integer, got {arguments.seed}")
+    if arguments.angle is not None and arguments.system != "quartic":
+        parser.error(f"--angle is for the quartic, not {arguments.system}")
+    if arguments.angle is not None and arguments.seed is not None:
+        parser.error("give --angle or --seed for the quartic, not both")
+    return n_steps
 
 
 if __name__ == "__main__":

@@ -1,5 +1,14 @@
+import pathlib
 import subprocess
 import sys
+import types
+
+import jax
+import numpy as np
+import pytest
+
+import nhjax as nh
+from nhjax._cli import FIGURES, main, METHODS, SYSTEMS
 
 
 def _run(*arguments):
@@ -22,3 +31,92 @@ def test_bad_arguments_give_a_message_and_nonzero_exit():
     assert out.returncode != 0 and "--dt must be positive" in out.stderr
     out = _run("fly")
     assert out.returncode != 0 and "invalid choice" in out.stderr
+
+
+def test_simulate_writes_the_trajectory_with_energy_and_constraint_at_roundoff(tmp_path):
+    out = tmp_path / "runs" / "gearbox.npz"
+    run = _run(
+        "simulate", "gearbox", "--method", "gonzalez-r", "--dt", "0.1", "--t1", "20",
+        "--save-every", "10", "--chunk-steps", "100", "--no-progress", "--out", str(out),
+    )
+    assert run.returncode == 0, run.stderr
+    assert out.exists() and not (tmp_path / "runs" / "gearbox.npz.chunks").exists()
+    with np.load(out) as saved:
+        assert sorted(saved.files) == ["constraint", "energy", "p", "q", "ts"]
+        ts, q, p, energy, constraint = (saved[name] for name in ("ts", "q", "p", "energy", "constraint"))
+    assert ts.shape == energy.shape == (21,) and q.shape == p.shape == (21, 3) and constraint.shape == (21, 1)
+    np.testing.assert_allclose(ts, np.arange(21.0), atol=1e-12)
+    # The saved energy and constraint are those of the saved states, and both are kept.
+    gearbox = nh.examples.gearbox()
+    np.testing.assert_allclose(energy, 0.5 * np.sum(p**2, axis=1) + jax.vmap(gearbox.potential)(q), rtol=1e-14)
+    assert np.max(np.abs(energy / energy[0] - 1)) < 1e-13
+    assert np.max(np.abs(p[:, 0] + np.sin(q[:, 2]) * p[:, 1])) < 1e-13
+    assert np.ptp(q[:, 0]) > 0.1  # it moved
+    summary = {line[:37].strip(): line[37:].strip() for line in run.stdout.splitlines()[1:]}
+    assert summary["steps"] == "200"
+    assert float(summary["max relative energy error"]) < 1e-13
+    assert float(summary["max constraint error |A(q) dH/dp|"]) < 1e-13
+    assert summary["result"] == "successful"
+
+
+def test_simulate_help_names_every_option_system_and_method():
+    out = _run("simulate", "--help")
+    assert out.returncode == 0
+    for name in ("--method", "--dt", "--t1", "--save-every", "--out", "--chunk-steps", "--seed", "--angle", "--no-progress"):
+        assert name in out.stdout, name
+    for name in (*SYSTEMS, *METHODS):
+        assert f"\n  {name}" in out.stdout, name
+
+
+def test_unknown_system_or_method_lists_the_valid_ones():
+    out = _run("simulate", "bicycle", "--method", "sidla", "--dt", "0.1", "--t1", "1")
+    assert out.returncode != 0 and "invalid choice: 'bicycle'" in out.stderr
+    assert all(f"'{name}'" in out.stderr for name in SYSTEMS)
+    out = _run("simulate", "sleigh", "--method", "rk4", "--dt", "0.1", "--t1", "1")
+    assert out.returncode != 0 and "invalid choice: 'rk4'" in out.stderr
+    assert all(f"'{name}'" in out.stderr for name in METHODS)
+
+
+def test_bad_simulate_numbers_give_a_message_and_nonzero_exit(capsys):
+    out = _run("simulate", "sleigh", "--method", "sidla", "--dt", "0", "--t1", "1")
+    assert out.returncode != 0 and "--dt must be positive, got 0.0" in out.stderr
+    for arguments, message in [
+        (["--dt", "-0.1", "--t1", "1"], "--dt must be positive"),
+        (["--dt", "nan", "--t1", "1"], "--dt must be positive"),
+        (["--dt", "0.1", "--t1", "-1"], "--t1 must be positive"),
+        (["--dt", "0.3", "--t1", "1"], "whole number of steps: t1/h = 3.33333"),
+        (["--dt", "0.1", "--t1", "1", "--save-every", "3"], "divisor of the number of steps t1/h = 10, got 3"),
+        (["--dt", "0.1", "--t1", "1", "--save-every", "2", "--chunk-steps", "5"], "multiple of --save-every 2, got 5"),
+        (["--dt", "0.1", "--t1", "1", "--seed", "3"], "--seed needs a system with random initial states"),
+        (["--dt", "0.1", "--t1", "1", "--angle", "0.2"], "--angle is for the quartic"),
+    ]:
+        with pytest.raises(SystemExit) as exit:
+            main(["simulate", "sleigh", "--method", "sidla", *arguments])
+        assert exit.value.code != 0
+        assert message in capsys.readouterr().err, arguments
+
+
+def test_reproduce_passes_its_options_on(monkeypatch, tmp_path, capsys):
+    calls = []
+
+    def reproduce(figures, *, quick, out, progress=True):
+        calls.append((figures, quick, out, progress))
+        return {"fig2": {"agrees": True, "verdict": "rho settles at (0, 0.6)"}, "wall_time_s": 1.0}
+
+    monkeypatch.setitem(sys.modules, "nhjax._reproduce", types.SimpleNamespace(reproduce=reproduce))
+    assert main(["reproduce", "fig2", "fig1", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert "fig2: agrees with the paper: rho settles at (0, 0.6)" in capsys.readouterr().out
+    assert main(["reproduce"]) == 0
+    assert calls == [
+        (("fig2", "fig1"), True, tmp_path, False),
+        (FIGURES, False, pathlib.Path("nhjax-reproduction"), True),
+    ]
+    with pytest.raises(SystemExit) as exit:
+        main(["reproduce", "fig5"])
+    assert exit.value.code != 0 and "invalid choice: 'fig5'" in capsys.readouterr().err
+
+
+def test_reproduce_help_names_its_options():
+    out = _run("reproduce", "--help")
+    assert out.returncode == 0
+    assert all(name in out.stdout for name in ("--quick", "--out", "fig1", "fig4", "all"))
