@@ -1,0 +1,91 @@
+"""The paper's numerical experiments (§4: Figures 1 to 3) and a work-precision diagram
+beyond it (Figure 4), computed, plotted, checked against the paper's claims and written
+up: `reproduce`, behind `nhjax reproduce`.
+
+Each experiment writes `figN.png` into the output folder; `results.json` holds the
+numbers behind them, each experiment's `agrees` and one-line `verdict`, and its wall
+time; `report.md` shows it all. Long runs (Figure 1's ensemble, Figure 3's 500 000
+steps) go through `run_chunked` with their chunks under `out/chunks/`, so an interrupted
+reproduction continues where it stopped when run again into the same folder.
+"""
+
+import json
+import pathlib
+import platform
+import time
+from collections.abc import Iterable
+
+from ._sizes import FULL, QUICK, Sizes
+
+
+FIGURES = ("fig1", "fig2", "fig3", "fig4")
+
+
+def _requested(figures: str | Iterable[str]) -> list[str]:
+    """The figures asked for, in order, without repeats; "all" means every one."""
+    names = [figures] if isinstance(figures, str) else list(figures)
+    unknown = [name for name in names if name not in FIGURES + ("all",)]
+    if unknown or not names:
+        raise ValueError(
+            f"Unknown figure(s) {', '.join(map(repr, unknown)) or '(none given)'}: choose from "
+            f"{', '.join(FIGURES)} or all."
+        )
+    if "all" in names:
+        return list(FIGURES)
+    return [name for name in FIGURES if name in names]
+
+
+def reproduce(
+    figures: str | Iterable[str],
+    *,
+    quick: bool,
+    out: str | pathlib.Path,
+    progress: bool = True,
+    _sizes: Sizes | None = None,
+) -> dict:
+    """Compute the requested experiments and write their figures, `results.json` and
+    `report.md` into `out` (created if missing).
+
+    **Arguments:**
+
+    - `figures`: names from `FIGURES`, or `"all"`.
+    - `quick`: reduced sizes (Figure 1's ensemble 50 states to t = 500, Figure 3's run
+        50 000 steps), a few minutes in all; otherwise the paper's sizes.
+    - `out`: the output folder. Chunks of long runs go to `out/chunks/`, and a rerun into
+        the same folder continues from them.
+    - `progress`: progress bars on the long stages.
+
+    Turns on float64 for the process (`jax_enable_x64`): the experiments are about
+    errors at roundoff. Returns the contents of `results.json`.
+    """
+    names = _requested(figures)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from . import fig1, fig2, fig3, fig4, report
+    from ._common import Context
+
+    sizes = _sizes if _sizes is not None else (QUICK if quick else FULL)
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    context = Context(out=out, sizes=sizes, progress=bool(progress))
+    modules = dict(fig1=fig1, fig2=fig2, fig3=fig3, fig4=fig4)
+
+    start = time.perf_counter()
+    results = {}
+    for name in names:
+        began = time.perf_counter()
+        results[name] = modules[name].run(context)
+        results[name]["wall_time_s"] = time.perf_counter() - began
+    results["meta"] = dict(
+        quick=bool(quick),
+        figures=names,
+        wall_time_s=time.perf_counter() - start,
+        jax=jax.__version__,
+        backend=jax.default_backend(),
+        machine=platform.machine(),
+        all_agree=all(results[name]["agrees"] for name in names),
+    )
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    report.write(out / "report.md", results)
+    return results

@@ -1,0 +1,242 @@
+"""What the experiments share: the methods by the paper's names, the chaotic quartic in
+its two forms, compiled runs to a final time, fits, thresholds and figure output."""
+
+import dataclasses
+import math
+import pathlib
+import statistics
+import time
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+import nhjax as nh
+
+from ._sizes import Sizes
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A method as the paper names it. `adapted`: it integrates an example's reduced
+    equations in adapted coordinates (a `SkewGradientSystem`), not the canonical
+    `NonholonomicSystem`."""
+
+    solver: diffrax.AbstractSolver
+    adapted: bool
+    colour: str
+    description: str
+
+
+METHODS = {
+    "GONZALEZ-R": Method(nh.GonzalezR(), False, "C0", "GONZALEZ-R, canonical coordinates"),
+    "GONZALEZ-F": Method(nh.GonzalezF(), False, "C1", "GONZALEZ-F, canonical coordinates"),
+    "SI-DLA": Method(nh.SIDLA(), False, "C2", "SI-DLA, canonical coordinates"),
+    "I-DLA": Method(nh.IDLA(), False, "C3", "I-DLA, canonical coordinates"),
+    "SPARK": Method(nh.SPARK(), False, "C4", "2-stage Lobatto IIIA-B-C-C*-D SPARK, canonical coordinates"),
+    "AVF": Method(
+        nh.DiscreteGradient(discrete_gradient=nh.avf), True, "C5", "DiscreteGradient(avf), adapted coordinates"
+    ),
+    "GONZALEZ": Method(
+        nh.DiscreteGradient(discrete_gradient=nh.gonzalez), True, "C6", "DiscreteGradient(gonzalez), adapted coordinates"
+    ),
+    "Tsit5": Method(diffrax.Tsit5(), False, "C7", "Tsit5 at fixed steps on the index-1 ODE (non-geometric)"),
+}
+DISCRETE_GRADIENT_METHODS = ("AVF", "GONZALEZ", "GONZALEZ-R", "GONZALEZ-F")
+EPS = float(np.finfo(np.float64).eps)
+# Enough for the runs to t = 10; a constant, so that it never causes a recompilation.
+_MAX_STEPS = 1_000_000
+
+
+def roundoff(n_steps: int) -> float:
+    """What "to roundoff" allows after `n_steps` steps: rounding errors of a few eps per
+    step that add up as a random walk, with room to spare, $100\\epsilon\\sqrt{N}$."""
+    return 100 * EPS * math.sqrt(n_steps)
+
+
+@dataclasses.dataclass
+class Context:
+    """One reproduction: where its files go, its sizes, whether to show progress, and
+    results computed once and used by several experiments (`shared`)."""
+
+    out: pathlib.Path
+    sizes: Sizes
+    progress: bool
+    shared: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def chunk_directory(self, name: str) -> pathlib.Path:
+        """Where a long run keeps its chunks; the name carries the run's sizes, so that a
+        quick and a full reproduction into one folder do not collide."""
+        return self.out / "chunks" / name
+
+
+class Quartic:
+    """The chaotic quartic (n = 3) of Figures 1 and 4 in both of its forms: canonical
+    states (q, p) for the canonical methods, adapted states (q, rho) for the
+    discrete-gradient methods on the reduced equations."""
+
+    def __init__(self):
+        self.example = nh.examples.chaotic_quartic(3)
+
+    def system(self, name: str) -> nh.AbstractSystem:
+        return self.example.adapted if METHODS[name].adapted else self.example.canonical
+
+    def start(self, name: str, adapted_state):
+        """The state `name` integrates from, given the adapted one."""
+        return adapted_state if METHODS[name].adapted else self.example.from_adapted(adapted_state)
+
+    def starts(self, name: str, adapted_states):
+        """`start` for a batch of states along the leading axis."""
+        return jax.vmap(lambda state: self.start(name, state))(adapted_states)
+
+    def canonical(self, name: str, state):
+        """(q, p) of a state of `name`'s form (no batch axis)."""
+        return self.example.from_adapted(state) if METHODS[name].adapted else state
+
+    def energy(self, y) -> jax.Array:
+        return self.example.canonical.energy(y, None)
+
+    def constraint(self, y) -> jax.Array:
+        r"""$|\dot x + \sum_i w_i\dot z_i| = |A(q)\,\partial H/\partial p|$ at (q, p)."""
+        return jnp.max(jnp.abs(self.example.canonical.constraint_residual(y, None)))
+
+    def reference(self, context: Context, t1: float):
+        """(q, p) at `t1` from the sample state by `nhjax.integrate_adaptive` (Dopri8 on
+        the index-1 ODE) at rtol = atol = 1e-13: the reference of Figures 1(a) and 4,
+        computed once."""
+        key = ("quartic reference", t1)
+        if key not in context.shared:
+            y0 = self.example.from_adapted(self.ensemble(context.sizes)[0])
+            solution = nh.integrate_adaptive(self.example.canonical, y0, t1, rtol=1e-13, atol=1e-13)
+            context.shared[key] = jax.tree.map(lambda y: y[-1], solution.ys)
+        return context.shared[key]
+
+    def ensemble(self, sizes: Sizes):
+        """Figure 1(d)'s random adapted states with H = 3.06. The first is the sample
+        state: the start of Figure 1(a)-(c) and of Figure 4."""
+        return self.example.random_initial_states(jax.random.key(sizes.seed), sizes.ensemble_count)
+
+
+def state_error(y, reference) -> float:
+    """Max-norm distance of two (q, p) states."""
+    return max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(y, reference))
+
+
+@eqx.filter_jit
+def run_to(system, method, y0, dt, t1):
+    """`method` at the fixed step `dt` from t = 0 to `t1`: the final state, whether
+    every step succeeded, and the number of steps.
+
+    The same steps as `nhjax.integrate`, through `diffrax.diffeqsolve` with constant
+    steps, saving only the end: there the number of steps is static, so each step size
+    would compile anew; here `dt` and `t1` are traced, and one compilation serves every
+    step size. (It also skips `nhjax.integrate`'s check of the initial state, which
+    would refuse GONZALEZ-F's states once its constraint has drifted, were the run cut
+    into pieces instead.)"""
+    solution = diffrax.diffeqsolve(
+        system,
+        method,
+        t0=jnp.zeros_like(t1),
+        t1=t1,
+        dt0=dt,
+        y0=y0,
+        stepsize_controller=diffrax.ConstantStepSize(),
+        max_steps=_MAX_STEPS,
+        throw=False,
+    )
+    final = jax.tree.map(lambda leaf: leaf[-1], solution.ys)
+    return final, solution.result == diffrax.RESULTS.successful, solution.stats["num_accepted_steps"]
+
+
+@eqx.filter_jit
+def run_adaptive(system, y0, t1, tolerance):
+    """Dopri8 with a PID controller at rtol = atol = `tolerance` on the system's vector
+    field (the index-1 ODE): the state at `t1`, success, and the number of accepted
+    steps. What `nhjax.integrate_adaptive` does, with the tolerance traced so that one
+    compilation serves a sweep of tolerances (there they are static)."""
+    solution = diffrax.diffeqsolve(
+        system,
+        diffrax.Dopri8(),
+        t0=jnp.zeros_like(t1),
+        t1=t1,
+        dt0=None,
+        y0=y0,
+        stepsize_controller=diffrax.PIDController(rtol=tolerance, atol=tolerance),
+        max_steps=_MAX_STEPS,
+        throw=False,
+    )
+    final = jax.tree.map(lambda leaf: leaf[-1], solution.ys)
+    return final, solution.result == diffrax.RESULTS.successful, solution.stats["num_accepted_steps"]
+
+
+def check_run(name: str, h: float, t1: float, succeeded, steps) -> None:
+    """Raise unless a `run_to` run succeeded in t1 / h steps."""
+    if not bool(succeeded):
+        raise RuntimeError(f"{name} failed on the way to t = {t1} with h = {h}.")
+    if int(steps) != round(t1 / h):
+        raise RuntimeError(f"{name} took {int(steps)} steps of h = {h} to t = {t1}, not {round(t1 / h)}.")
+
+
+def median_time(function, repeats: int, least: float = 0.02) -> float:
+    """Median wall time of `function()` over `repeats` timings, JAX's dispatch waited
+    for. Each timing calls it often enough to take `least` seconds, as `timeit` does,
+    so that sub-millisecond runs are not timer noise. Call it once before (compiling)."""
+
+    def timed(calls):
+        start = time.perf_counter()
+        for _ in range(calls):
+            jax.block_until_ready(function())
+        return (time.perf_counter() - start) / calls
+
+    calls = max(1, math.ceil(least / timed(1)))
+    return statistics.median(timed(calls) for _ in range(repeats))
+
+
+def fitted_order(step_sizes, errors) -> float:
+    """The slope of log(error) against log(h), least squares."""
+    return float(np.polyfit(np.log(step_sizes), np.log(errors), 1)[0])
+
+
+def late_slope(times, values) -> tuple[float, float]:
+    """(slope, intercept) of a straight line fitted to `values` over the last 90% of
+    `times`: early on a bounded part dominates, later the linear growth."""
+    times, values = np.asarray(times), np.asarray(values)
+    late = times >= times[0] + 0.1 * (times[-1] - times[0])
+    slope, intercept = np.polyfit(times[late], values[late], 1)
+    return float(slope), float(intercept)
+
+
+def positive(values, floor: float = 1e-18) -> np.ndarray:
+    """`values` with zeros (errors exactly zero) lifted to `floor` for log axes."""
+    return np.maximum(np.asarray(values), floor)
+
+
+def new_figure(columns: int, rows: int = 1) -> tuple[Figure, np.ndarray]:
+    """A matplotlib figure on the Agg canvas (no pyplot, no global backend) and its axes."""
+    figure = Figure(figsize=(5.2 * columns, 4.0 * rows), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(rows, columns, squeeze=False)
+    return figure, axes
+
+
+def save_figure(figure: Figure, path: pathlib.Path) -> str:
+    figure.savefig(path, dpi=120)
+    return path.name
+
+
+def check(passed: bool, text: str) -> dict:
+    """One claim checked: whether it holds, and what was compared."""
+    return dict(passed=bool(passed), text=text)
+
+
+def verdict(checks: list[dict]) -> tuple[bool, str]:
+    """`agrees` (every check holds) and a one-line verdict listing the checks, the
+    failed ones marked."""
+    agrees = all(item["passed"] for item in checks)
+    parts = [item["text"] if item["passed"] else f"NOT {item['text']}" for item in checks]
+    return agrees, ("Agrees: " if agrees else "Disagrees: ") + "; ".join(parts) + "."

@@ -1,0 +1,102 @@
+"""`report.md`: each experiment's figure, the numbers behind it, its wall time and one
+line on whether it agrees with the paper."""
+
+import pathlib
+
+from ._common import METHODS
+
+
+TITLES = {
+    "fig1": "Figure 1: the chaotic quartic (§4.1)",
+    "fig2": "Figure 2: the Chaplygin sleigh (§4.2)",
+    "fig3": "Figure 3: the gearbox driven by an asymmetric pendulum (§4.4)",
+    "fig4": "Figure 4 (beyond the paper): work against precision on the chaotic quartic",
+}
+
+
+def _number(value) -> str:
+    if isinstance(value, bool) or value is None:
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_number(item) for item in value)
+    return str(value)
+
+
+def _table(rows: dict, columns: list[str]) -> list[str]:
+    lines = ["| method | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for name, values in rows.items():
+        lines.append(f"| {name} | " + " | ".join(_number(values.get(column)) for column in columns) + " |")
+    return lines
+
+
+_COLUMNS = {
+    "fig1": ["fitted_order", "errors_at_t10", "max_constraint_error", "max_relative_energy_error",
+             "variance_slope_relative_to_line", "variance_intercept_over_h4", "final_variance_over_h4"],
+    "fig2": ["final_rho", "time_rho2_turns_positive", "max_relative_energy_error", "max_constraint_error"],
+    "fig3": ["max_relative_energy_error", "final_relative_energy_error", "max_constraint_error"],
+    "fig4": ["settings", "wall_time_s", "energy_error", "solution_error", "fitted_order"],
+}
+
+_NOTES = {
+    "fig1": (
+        "Errors at t = 10 are max-norm distances in (q, p) from Dopri8 at rtol = atol = 1e-13, "
+        "at the step sizes listed in the settings. Panels (b) and (c) follow the ensemble's first "
+        "trajectory, which is also the start of (a). The variance slope is fitted with an intercept "
+        "over the last 90% of the run and is given in units of 1e-4 h^4 per unit time (1 = on the "
+        "paper's line); the intercept is the bounded part, in units of h^4."
+    ),
+    "fig2": "rho = (rho1, rho2) in the paper's orthonormal frame, for rho1(0) = -0.001 and 0.001.",
+    "fig3": "Errors are maxima over the saves (every 100 steps).",
+    "fig4": (
+        "`settings` are the step sizes (Dopri8: the tolerances rtol = atol). Wall times are medians "
+        "after compilation, of one trajectory to t = 10 on this machine."
+    ),
+}
+
+
+def write(path: pathlib.Path, results: dict) -> None:
+    meta = results["meta"]
+    mode = "quick (reduced sizes)" if meta["quick"] else "full (the paper's sizes)"
+    lines = [
+        "# nhjax: reproduction of Celledoni, Farré Puiggalí, Høiseth, Martín de Diego,",
+        "# *Energy-preserving integrators applied to nonholonomic systems*",
+        "",
+        f"Mode: {mode}. Float64. Total wall time {meta['wall_time_s']:.1f} s, compilation included "
+        f"(jax {meta['jax']}, {meta['backend']}).",
+        "",
+        "| experiment | agrees | wall time (s) |",
+        "|---|---|---|",
+    ]
+    figures = [name for name in TITLES if name in results]
+    for name in figures:
+        lines.append(f"| {name} | {'yes' if results[name]['agrees'] else 'NO'} | {results[name]['wall_time_s']:.1f} |")
+    used = [method for method in METHODS if any(method in results[name]["methods"] for name in figures)]
+    lines += ["", "Methods: " + "; ".join(f"**{method}**: {METHODS[method].description}" for method in used) + "."]
+    for name in figures:
+        result = results[name]
+        lines += ["", f"## {TITLES[name]}", ""]
+        lines += [f"![{name}]({image})" for image in result["images"]]
+        lines += [
+            "",
+            f"**Agreement with the paper: {'yes' if result['agrees'] else 'NO'}.** {result['verdict']}",
+            "",
+            f"Wall time: {result['wall_time_s']:.1f} s (compilation included).",
+            "",
+            "Settings: " + "; ".join(f"{key} = {_number(value)}" for key, value in result["settings"].items()) + ".",
+            "",
+        ]
+        if result.get("size_note"):
+            lines += [f"**Reduced size:** {result['size_note']}", ""]
+        lines += _table(result["methods"], _COLUMNS[name])
+        lines += ["", _NOTES[name]]
+        if name == "fig4":
+            cheapest = result["cheapest_time_to_solution_error_target_s"]
+            reached = {method: seconds for method, seconds in cheapest.items() if seconds is not None}
+            if reached:
+                target = result["solution_error_target"]
+                lines += ["", f"Cheapest run reaching a solution error of {target:g} at t = 10: " + ", ".join(
+                    f"{method} {seconds * 1e3:.2f} ms" for method, seconds in sorted(reached.items(), key=lambda item: item[1])
+                ) + "."]
+    path.write_text("\n".join(lines) + "\n")

@@ -1,0 +1,143 @@
+"""`nhjax reproduce` end to end at a reduced size: the files it writes, and the paper's
+claims in its numbers.
+
+One reproduction of all four figures runs once for the module (two methods on the
+quartic, one of each kind; Figure 1's ensemble at the quick size, 50 states to
+t = 500; 4000 gearbox steps in two chunks)."""
+
+import dataclasses
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from nhjax._reproduce import FIGURES, QUICK, reproduce
+
+
+SMALL = dataclasses.replace(
+    QUICK,
+    quartic_methods=("SI-DLA", "GONZALEZ"),
+    order_step_sizes=(0.1, 0.05, 0.025),
+    sleigh_gonzalez_r=False,
+    gearbox_steps=4000,
+    gearbox_chunk_steps=2000,
+    work_methods=("SI-DLA", "GONZALEZ"),
+    work_step_sizes=(0.1, 0.05, 0.025),
+    work_tolerances=(1e-6, 1e-9),
+    work_repeats=1,
+)
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def reproduction(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reproduction")
+    results = reproduce("all", quick=True, out=out, progress=False, _sizes=SMALL)
+    return out, results
+
+
+def test_writes_every_figure_results_and_report(reproduction):
+    out, results = reproduction
+    for name in FIGURES:
+        image = (out / f"{name}.png").read_bytes()
+        assert image.startswith(PNG_SIGNATURE) and len(image) > 10_000, name
+    saved = json.loads((out / "results.json").read_text())
+    assert saved == json.loads(json.dumps(results))
+    for name in FIGURES:
+        assert isinstance(saved[name]["agrees"], bool)
+        assert saved[name]["verdict"].startswith(("Agrees", "Disagrees", "Beyond the paper"))
+        assert saved[name]["wall_time_s"] > 0
+    assert saved["meta"]["figures"] == list(FIGURES)
+
+
+def test_report_embeds_each_figure_with_its_verdict(reproduction):
+    out, results = reproduction
+    report = (out / "report.md").read_text()
+    for name in FIGURES:
+        assert f"![{name}]({name}.png)" in report
+        assert results[name]["verdict"] in report
+    assert report.count("Wall time:") == len(FIGURES)
+    assert "**Reduced size:**" in report  # Figure 1's ensemble and Figure 3's run are short
+
+
+def test_every_experiment_agrees_with_the_paper(reproduction):
+    _, results = reproduction
+    assert results["meta"]["all_agree"], {name: results[name]["verdict"] for name in FIGURES}
+
+
+def test_quartic_orders_energy_and_constraint(reproduction):
+    """Figure 1: second order; GONZALEZ's energy error and its variance at roundoff,
+    SI-DLA's O(h^2) with variance growing about as 1e-4 h^4 t; the constraint kept by both."""
+    _, results = reproduction
+    methods = results["fig1"]["methods"]
+    for name in ("SI-DLA", "GONZALEZ"):
+        assert 1.9 < methods[name]["fitted_order"] < 2.1, name
+        assert methods[name]["max_constraint_error"] < 1e-14, name
+    assert methods["GONZALEZ"]["max_relative_energy_error_all_states"] < 1e-12
+    assert methods["SI-DLA"]["max_relative_energy_error"] > 1e-4
+    assert abs(methods["GONZALEZ"]["final_variance_over_h4"]) < 1e-18
+    assert 0.5 < methods["SI-DLA"]["variance_slope_relative_to_line"] < 2
+
+
+def test_sleigh_settles_as_proposition_4_1_says(reproduction):
+    """Figure 2: from either side of the unstable equilibrium (0, -0.6), rho ends at
+    (0, +sqrt(rho1^2 + rho2^2)), with the energy to roundoff."""
+    _, results = reproduction
+    result = results["fig2"]["methods"]["GONZALEZ"]
+    settled = np.hypot(0.001, 0.6)
+    np.testing.assert_allclose(result["final_rho"], [[0.0, settled], [0.0, settled]], rtol=0, atol=1e-12)
+    assert result["max_relative_energy_error"] < 1e-13
+    assert all(0 < time < 1000 for time in result["time_rho2_turns_positive"])
+
+
+def test_gearbox_energy_and_constraint(reproduction):
+    """Figure 3: GONZALEZ-R and -F keep the energy, SI-DLA does not; GONZALEZ-R and
+    SI-DLA keep the constraint, GONZALEZ-F does not."""
+    _, results = reproduction
+    methods = results["fig3"]["methods"]
+    energy = {name: methods[name]["max_relative_energy_error"] for name in methods}
+    constraint = {name: methods[name]["max_constraint_error"] for name in methods}
+    assert energy["GONZALEZ-R"] < 1e-13 and energy["GONZALEZ-F"] < 1e-13
+    assert energy["SI-DLA"] > 1e-6
+    assert constraint["GONZALEZ-R"] < 1e-14 and constraint["SI-DLA"] < 1e-14
+    assert constraint["GONZALEZ-F"] > 1e-6
+
+
+def test_work_precision(reproduction):
+    """Figure 4: each point timed and measured; GONZALEZ's energy at roundoff at every
+    step size, Dopri8's error falling with its tolerance."""
+    _, results = reproduction
+    methods = results["fig4"]["methods"]
+    assert set(methods) == {"SI-DLA", "GONZALEZ", "Dopri8 (adaptive)"}
+    for entry in methods.values():
+        assert len(entry["wall_time_s"]) == len(entry["settings"]) and not entry["failed"]
+        assert all(seconds > 0 for seconds in entry["wall_time_s"])
+    assert methods["SI-DLA"]["steps"] == [100, 200, 400]
+    assert max(methods["GONZALEZ"]["energy_error"]) < 1e-13
+    assert min(methods["SI-DLA"]["energy_error"]) > 1e-6
+    dopri8 = methods["Dopri8 (adaptive)"]["solution_error"]
+    assert dopri8[1] < 1e-2 * dopri8[0]  # tolerances 1e-6 and 1e-9
+
+
+def test_an_interrupted_reproduction_resumes_to_the_same_numbers(reproduction, tmp_path):
+    """The gearbox run with a chunk missing, as after an interruption: a rerun into the
+    same folder recomputes just that chunk, and every number comes out the same."""
+    out, results = reproduction
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    chunk = copy / "chunks" / "fig3_GONZALEZ-R_4000" / "chunk_00001.npz"
+    kept = copy / "chunks" / "fig3_GONZALEZ-R_4000" / "chunk_00000.npz"
+    kept_time = kept.stat().st_mtime_ns
+    chunk.unlink()
+    again = reproduce(["fig3"], quick=True, out=copy, progress=False, _sizes=SMALL)
+    assert chunk.exists() and kept.stat().st_mtime_ns == kept_time
+    assert again["fig3"]["methods"] == results["fig3"]["methods"]
+    assert list(json.loads((copy / "results.json").read_text())["meta"]["figures"]) == ["fig3"]
+
+
+@pytest.mark.parametrize("figures", [["fig5"], [], "fig1,fig2"])
+def test_unknown_figures_are_refused(figures, tmp_path):
+    with pytest.raises(ValueError, match="choose from fig1, fig2, fig3, fig4 or all"):
+        reproduce(figures, quick=True, out=tmp_path, progress=False)
+    assert not any(tmp_path.iterdir())
