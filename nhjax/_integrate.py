@@ -72,6 +72,7 @@ def integrate(
     throw: bool = True,
     *,
     t0: float | Array = 0.0,
+    check_constraint: bool | Array = True,
 ) -> Solution:
     """Integrate `system` with `method` over `n_steps` steps of size `dt` from `t0`.
 
@@ -94,6 +95,9 @@ def integrate(
     - `throw`: raise on failure. With `throw=False` failures are reported per
         trajectory in `Solution.result` instead.
     - `t0`: the initial time.
+    - `check_constraint`: `False` accepts an initial state that violates the constraint
+        (e.g. to continue a GONZALEZ-F run, whose constraint residual drifts); every other
+        check of the initial state stays. May be traced.
 
     **Errors.** Wrong shapes, a non-integer `n_steps` and a concrete `dt <= 0` raise a
     `ValueError` at once. A non-finite initial state, a structure that is not skew, a
@@ -123,6 +127,7 @@ def integrate(
         jnp.asarray(dt, dtype=dtype),
         jnp.asarray(t0, dtype=dtype),
         _trace_floats(args),
+        jnp.asarray(check_constraint, dtype=bool),
         n_steps=int(n_steps),
         save_every=int(save_every),
         progress=bool(progress),
@@ -131,10 +136,12 @@ def integrate(
 
 
 @eqx.filter_jit
-def _integrate(system, method, y0, dt, t0, args, *, n_steps, save_every, progress, throw):
+def _integrate(system, method, y0, dt, t0, args, check_constraint, *, n_steps, save_every, progress, throw):
+    state_result = system.initial_state_result(y0, args)
+    waived = ~check_constraint & (state_result == RESULTS.constraint_violated_initially)
     initial_result = first_failure(
         RESULTS.where(dt > 0, RESULTS.successful, RESULTS.nonpositive_dt),
-        system.initial_state_result(y0, args),
+        RESULTS.where(waived, RESULTS.successful, state_result),
     )
     startable = initial_result == RESULTS.successful
     # A trajectory that cannot start still runs (under vmap its neighbours do), from a

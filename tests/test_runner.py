@@ -190,3 +190,20 @@ def test_a_batch_runs_as_one_vmapped_program_per_chunk(chunked_run, tmp_path):
     assert np.max(np.abs(batch.energy / batch.energy[:, :1] - 1)) < 1e-2
     with pytest.raises(ValueError, match="must be a 1-D array"):
         run_chunked(GEARBOX.canonical, diffrax.Tsit5(), (states[0][None], states[1][None]), 0.1, 10, directory=tmp_path / "bad")
+
+
+def test_a_method_whose_constraint_drifts_continues_across_chunks(tmp_path):
+    """GONZALEZ-F's states leave the constraint, so a later chunk starts off it: only the
+    first chunk's start is checked, and the chunked run equals one run to roundoff."""
+    method = nh.GonzalezF()
+    chunked = _chunked(tmp_path / "chunks", method=method)
+    assert chunked.result == nh.RESULTS.successful
+    whole = nh.integrate(GEARBOX.canonical, method, Y0, RUN["dt"], RUN["n_steps"], save_every=RUN["save_every"])
+    assert float(jnp.max(jnp.abs(whole.constraint))) > 1e-6
+    for a, b in zip(chunked.ys, whole.ys):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-10)
+    drifted = jax.tree.map(lambda y: y[-1], whole.ys)
+    refused = nh.integrate(GEARBOX.canonical, method, drifted, 0.1, 10, throw=False)
+    assert refused.result == nh.RESULTS.constraint_violated_initially
+    accepted = nh.integrate(GEARBOX.canonical, method, drifted, 0.1, 10, check_constraint=False)
+    assert accepted.result == nh.RESULTS.successful

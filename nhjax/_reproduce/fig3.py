@@ -23,13 +23,6 @@ STEP = 0.1
 NAMES = ("GONZALEZ-R", "GONZALEZ-F", "SI-DLA")
 
 
-def _chunk_steps(name: str, sizes) -> int:
-    """GONZALEZ-F runs in one chunk: it lets the constraint drift, and a chunk that
-    started from its state would be refused by `nhjax.integrate`'s check of the initial
-    constraint. (It is also the cheapest of the three, a few seconds for the full run.)"""
-    return sizes.gearbox_steps if name == "GONZALEZ-F" else sizes.gearbox_chunk_steps
-
-
 def plot(path, runs) -> str:
     figure, axes = new_figure(2)
     energy_axes, constraint_axes = axes[0]
@@ -59,7 +52,7 @@ def run(context: Context) -> dict:
             sizes.gearbox_steps,
             directory=context.chunk_directory(f"fig3_{name}_{sizes.gearbox_steps}"),
             save_every=sizes.gearbox_save_every,
-            chunk_steps=_chunk_steps(name, sizes),
+            chunk_steps=sizes.gearbox_chunk_steps,
             progress=context.progress,
         )
         energy = np.asarray(solution.energy)
