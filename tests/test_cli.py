@@ -120,3 +120,17 @@ def test_reproduce_help_names_its_options():
     out = _run("reproduce", "--help")
     assert out.returncode == 0
     assert all(name in out.stdout for name in ("--quick", "--out", "fig1", "fig4", "all"))
+
+
+def test_reproduce_quick_end_to_end_through_the_command(tmp_path, capsys):
+    """`nhjax reproduce fig2 --quick` for real (the cheapest figure; all four figures at
+    reduced sizes are checked in tests/test_reproduce.py): the files, the parsed
+    results, and the sleigh settling as Proposition 4.1 says."""
+    import json
+
+    assert main(["reproduce", "fig2", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert (tmp_path / "fig2.png").stat().st_size > 0
+    assert "fig2.png" in (tmp_path / "report.md").read_text()
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["fig2"]["agrees"] is True
+    assert "agrees" in capsys.readouterr().out
