@@ -224,7 +224,11 @@ def new_figure(columns: int, rows: int = 1) -> tuple[Figure, np.ndarray]:
     return figure, axes
 
 
-def save_figure(figure: Figure, path: pathlib.Path) -> str:
+def save_figure(figure: Figure, path: pathlib.Path, legend_size: int = 7) -> str:
+    """Every panel gets its legend and a light grid; the PNG's file name is returned."""
+    for ax in figure.axes:
+        ax.legend(fontsize=legend_size)
+        ax.grid(alpha=0.3)
     figure.savefig(path, dpi=120)
     return path.name
 

@@ -136,9 +136,6 @@ def plot(path, orders, runs, sizes) -> str:
         xlabel="$t$", ylabel=r"$\sigma^2(H(t) - H(0))\,/\,h^4$",
         title=f"(d) energy variance over {sizes.ensemble_count} states, $h = {ENSEMBLE_STEP}$",
     )
-    for ax in axes.flat:
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
     return save_figure(figure, path)
 
 

@@ -69,9 +69,6 @@ def plot(path, paths, settled_rho2) -> str:
     momentum_axes.plot([0, 0], [RHO2, settled_rho2], "kx", label="equilibria: start (unstable), end (stable)")
     position_axes.set(xlabel="$x_1$", ylabel="$x_2$", title=f"$x_1x_2$ paths to $t = {PARTIAL_TIME:g}$")
     momentum_axes.set(xlabel=r"$\rho_1$", ylabel=r"$\rho_2$", title=r"$\rho_1\rho_2$ paths")
-    for ax in axes.flat:
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
     return save_figure(figure, path)
 
 

@@ -32,10 +32,7 @@ def plot(path, runs) -> str:
         constraint_axes.semilogy(run["times"], positive(run["constraint"]), **style)
     energy_axes.set(xlabel="$t$", ylabel=r"$|H(t)/H(0) - 1|$", title="relative energy error")
     constraint_axes.set(xlabel="$t$", ylabel=r"$|p_1 + \sin(q_3)\,p_2|$", title="constraint error")
-    for ax in axes.flat:
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-    return save_figure(figure, path)
+    return save_figure(figure, path, legend_size=8)
 
 
 def run(context: Context) -> dict:

@@ -102,9 +102,6 @@ def plot(path, results) -> str:
     energy_axes.set(xlabel="wall time (s)", ylabel=r"$|H(10)/H(0) - 1|$",
                     title="work against energy error (0 shown at $10^{-18}$)")
     solution_axes.set(xlabel="wall time (s)", ylabel=r"max error at $t = 10$", title="work against solution error")
-    for ax in axes.flat:
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
     return save_figure(figure, path)
 
 
