@@ -48,6 +48,47 @@ def _trace_floats(args: PyTree) -> PyTree:
     )
 
 
+def check_step_counts(n_steps, save_every) -> None:
+    """`ValueError` unless `n_steps` and `save_every` are positive ints and `save_every`
+    divides `n_steps` (so that the final state is saved)."""
+    if not isinstance(n_steps, numbers.Integral) or n_steps < 1:
+        raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
+    if not isinstance(save_every, numbers.Integral) or save_every < 1:
+        raise ValueError(f"save_every must be a positive int, got {save_every!r}.")
+    if n_steps % save_every != 0:
+        raise ValueError(
+            f"save_every={save_every} must divide n_steps={n_steps}, so that the final "
+            "state is saved."
+        )
+
+
+def _save_observables(system):
+    """The `SaveAt.fn` of both loops: the state and the system's observables."""
+
+    def save(t, y, args):
+        del t
+        return y, system.observables(y, args)
+
+    return save
+
+
+def _assemble(ts, saved, result: RESULTS, stats, throw: bool) -> Solution:
+    """The `Solution` from diffrax's saves, with a non-finite save reported after any
+    earlier failure, and raised if `throw`."""
+    ys, observed = saved
+    result = first_failure(result, _finite_result(ys))
+    if throw:
+        ys = result.error_if(ys, result != RESULTS.successful)
+    return Solution(
+        ts=ts,
+        ys=ys,
+        energy=observed["energy"],
+        constraint=observed.get("constraint"),
+        result=result,
+        stats=stats,
+    )
+
+
 def _finite_result(ys: PyTree) -> RESULTS:
     """`nonfinite_step` if a saved state is not finite. nhjax's methods report such a
     step themselves, but a diffrax solver at fixed steps does not, and a NaN state
@@ -105,15 +146,7 @@ def integrate(
     non-finite state) raise at run time with the message of their `nhjax.RESULTS` code,
     or with `throw=False` set that code.
     """
-    if not isinstance(n_steps, numbers.Integral) or n_steps < 1:
-        raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
-    if not isinstance(save_every, numbers.Integral) or save_every < 1:
-        raise ValueError(f"save_every must be a positive int, got {save_every!r}.")
-    if n_steps % save_every != 0:
-        raise ValueError(
-            f"save_every={save_every} must divide n_steps={n_steps}, so that the final "
-            "state is saved."
-        )
+    check_step_counts(n_steps, save_every)
     if jnp.ndim(dt) != 0:
         raise ValueError(f"dt must be a scalar, got shape {jnp.shape(dt)}.")
     if not isinstance(dt, jax.core.Tracer) and not dt > 0:
@@ -150,10 +183,6 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, *, n_steps, s
     y_start = jax.tree.map(lambda y: jnp.where(startable, y, jnp.nan), y0)
     step_times = t0 + safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype)
 
-    def save(t, y, args):
-        del t
-        return y, system.observables(y, args)
-
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     solution = diffrax.diffeqsolve(
         system,
@@ -163,35 +192,24 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, *, n_steps, s
         dt0=None,
         y0=y_start,
         args=args,
-        saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=save, solver_state=True),
+        saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=_save_observables(system), solver_state=True),
         stepsize_controller=diffrax.StepTo(ts=step_times),
         max_steps=n_steps,
         throw=False,
         progress_meter=meter,
     )
-    ys, observed = solution.ys
     method_state = solution.solver_state
     result = first_failure(
         initial_result,
         getattr(method_state, "failure", RESULTS.successful),
         from_diffrax(solution.result),
-        _finite_result(ys),
     )
-    if throw:
-        ys = result.error_if(ys, result != RESULTS.successful)
     stats = dict(
         num_steps=solution.stats["num_accepted_steps"],
         root_find_steps=getattr(method_state, "total_steps", None),
         max_root_find_steps=getattr(method_state, "max_steps", None),
     )
-    return Solution(
-        ts=solution.ts,
-        ys=ys,
-        energy=observed["energy"],
-        constraint=observed.get("constraint"),
-        result=result,
-        stats=stats,
-    )
+    return _assemble(solution.ts, solution.ys, result, stats, throw)
 
 
 def integrate_adaptive(
@@ -256,10 +274,6 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, *, rtol, atol
     initial_result = system.initial_state_result(y0, args)
     y_start = jax.tree.map(lambda y: jnp.where(initial_result == RESULTS.successful, y, jnp.nan), y0)
 
-    def save(t, y, args):
-        del t
-        return y, system.observables(y, args)
-
     solution = diffrax.diffeqsolve(
         system,
         solver,
@@ -268,24 +282,14 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, *, rtol, atol
         dt0=None,
         y0=y_start,
         args=args,
-        saveat=diffrax.SaveAt(ts=save_at, fn=save),
+        saveat=diffrax.SaveAt(ts=save_at, fn=_save_observables(system)),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         max_steps=max_steps,
         throw=False,
     )
-    ys, observed = solution.ys
-    result = first_failure(initial_result, from_diffrax(solution.result), _finite_result(ys))
-    if throw:
-        ys = result.error_if(ys, result != RESULTS.successful)
+    result = first_failure(initial_result, from_diffrax(solution.result))
     stats = dict(
         num_steps=solution.stats["num_accepted_steps"],
         num_rejected_steps=solution.stats["num_rejected_steps"],
     )
-    return Solution(
-        ts=solution.ts,
-        ys=ys,
-        energy=observed["energy"],
-        constraint=observed.get("constraint"),
-        result=result,
-        stats=stats,
-    )
+    return _assemble(solution.ts, solution.ys, result, stats, throw)

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from ._integrate import _trace_floats, integrate, Solution
+from ._integrate import _trace_floats, check_step_counts, integrate, Solution
 from ._results import RESULTS
 
 
@@ -98,15 +98,7 @@ def run_chunked(
     Returns the `Solution` of the whole run, the chunks' saves concatenated; its `stats`
     add up over the chunks (`max_root_find_steps` is the largest of them).
     """
-    if not isinstance(n_steps, numbers.Integral) or n_steps < 1:
-        raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
-    if not isinstance(save_every, numbers.Integral) or save_every < 1:
-        raise ValueError(f"save_every must be a positive int, got {save_every!r}.")
-    if n_steps % save_every != 0:
-        raise ValueError(
-            f"save_every={save_every} must divide n_steps={n_steps}, so that the final "
-            "state is saved."
-        )
+    check_step_counts(n_steps, save_every)
     if isinstance(dt, jax.core.Tracer) or jnp.ndim(dt) != 0:
         raise ValueError("dt must be a concrete scalar: a chunked run cannot be traced.")
     if not dt > 0:
