@@ -1,6 +1,9 @@
 """Result codes of `nhjax.integrate`: diffrax's, plus the checks nhjax makes itself."""
 
 import diffrax
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, PyTree
 
 
 class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
@@ -66,3 +69,30 @@ def first_failure(*results: RESULTS) -> RESULTS:
     for result in reversed(results):
         out = RESULTS.where(result == RESULTS.successful, out, result)
     return out
+
+
+@jax.custom_jvp
+def _nan_derivative_gate(failed, source):
+    return jax.tree.map(jnp.zeros_like, source)
+
+
+@_nan_derivative_gate.defjvp
+def _nan_derivative_gate_jvp(primals, tangents):
+    failed, source = primals
+    _, source_tangent = tangents
+    blocked = jnp.where(failed, jnp.nan, 0.0)
+    return _nan_derivative_gate(failed, source), jax.tree.map(
+        lambda t: t * blocked.astype(t.dtype), source_tangent
+    )
+
+
+def nan_where_failed(failed: Bool[Array, ""], new: PyTree, source: PyTree) -> PyTree:
+    """`new`, or NaN if `failed`, where `new` (with the structure of `source`) was
+    computed from `source`.
+
+    A failed output is NaN in value and in its derivatives with respect to `source`,
+    forward and reverse. Replacing it by a NaN constant alone would give it zero
+    derivatives, and a loss that reads it, or only the saves before the failure, would
+    differentiate to a finite, wrong gradient."""
+    gate = _nan_derivative_gate(failed, source)
+    return jax.tree.map(lambda n, g: jnp.where(failed, jnp.nan, n) + g, new, gate)

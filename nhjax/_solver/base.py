@@ -17,9 +17,43 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Int, PyTree
 
-from .._results import RESULTS
+from .._results import nan_where_failed, RESULTS
 from .._system import AbstractSystem
 from .chord import Chord, invert
+
+
+def _no_gradient(tree: PyTree) -> PyTree:
+    arrays, static = eqx.partition(tree, eqx.is_array)
+    return eqx.combine(lax.stop_gradient(arrays), static)
+
+
+@eqx.filter_custom_jvp
+def _implicit_root(root, data, *, residual):
+    r"""`root`, a root of `residual(., data)`, with the derivatives the implicit function
+    theorem gives it: $\dot u = -(\partial_u F)^{-1}\,\partial_{\text{data}}F\,
+    \dot{\text{data}}$, with the exact Jacobian $\partial_u F$ at the root.
+
+    This is what optimistix's `ImplicitAdjoint` computes, done here because its lineax
+    solve raises a runtime error when it meets a non-finite value, and under `vmap` one
+    failed trajectory (whose states are NaN from the failure on) would then stop the
+    derivatives of the whole batch. Here a failed trajectory's derivatives are NaN and
+    its neighbours' are unaffected."""
+    del data, residual
+    return root
+
+
+@_implicit_root.def_jvp
+def _implicit_root_jvp(primals, tangents, *, residual):
+    root, data = primals
+    _, data_tangent = tangents
+    jacobian = jax.jacfwd(residual)(root, _no_gradient(data))
+    differentiable = jax.tree.map(lambda t: t is not None, data_tangent, is_leaf=lambda t: t is None)
+    varying, fixed = eqx.partition(data, differentiable)
+    tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
+    _, residual_tangent = jax.jvp(
+        lambda v: residual(root, eqx.combine(v, fixed)), (varying,), (tangent_in,)
+    )
+    return root, -jnp.linalg.solve(jacobian, residual_tangent)
 
 
 class MethodState(eqx.Module):
@@ -130,28 +164,32 @@ class AbstractMethod(diffrax.AbstractSolver):
         del made_jump
         system, h = self.system_and_step(terms, t0, t1)
         guess, data = self.setup(system, h, y0, args, solver_state.carry)
+        # The root find runs on constants; its derivatives come from `_implicit_root`.
+        guess, fixed_data = lax.stop_gradient(guess), _no_gradient(data)
         root_finder = self._root_finder(guess.dtype)
         options = {}
         if isinstance(root_finder, Chord):
-            options["inverse"] = invert(jax.jacfwd(self.simplified_residual)(guess, data))
+            options["inverse"] = invert(jax.jacfwd(self.simplified_residual)(guess, fixed_data))
         solution = optx.root_find(
             self.residual,
             root_finder,
             guess,
-            data,
+            fixed_data,
             options=options,
             max_steps=self.root_find_max_steps,
             throw=False,
         )
         result = diffrax.RESULTS.promote(solution.result)
-        y1, failure, carry = self.complete(solution.value, data)
+        root = _implicit_root(solution.value, data, residual=self.residual)
+        y1, failure, carry = self.complete(root, data)
         state = solver_state.record(solution.stats["num_steps"], failure, carry)
         return self.finish(y0, y1, result, state, failure)
 
     @staticmethod
     def finish(y0, y1, result, solver_state: MethodState, failure=RESULTS.successful):
         """The step's return tuple. A failed or non-finite step returns NaN, never a
-        plausible-looking state, together with its result code. `failure` is a code the
+        plausible-looking state, together with its result code, and its derivatives
+        with respect to `y0` are NaN too (`nan_where_failed`). `failure` is a code the
         method detected itself (see the module docstring)."""
         result = diffrax.RESULTS.where(
             failure == RESULTS.successful, result, diffrax.RESULTS.breakdown
@@ -162,7 +200,6 @@ class AbstractMethod(diffrax.AbstractSolver):
             diffrax.RESULTS.nonfinite,
             result,
         )
-        success = result == diffrax.RESULTS.successful
-        y1 = jax.tree.map(lambda leaf: jnp.where(success, leaf, jnp.nan), y1)
+        y1 = nan_where_failed(result != diffrax.RESULTS.successful, y1, y0)
         dense_info = dict(y0=y0, y1=y1)
         return y1, None, dense_info, solver_state, result

@@ -2,7 +2,7 @@ r"""A chord root finder that takes its Jacobian approximation from the method.
 
 A discrete-gradient step solves $F(u) = u - (h/s)\,\Pi(\bar\zeta)\,\bar\nabla\mathcal{H} = 0$.
 The exact Jacobian contains the derivative of the discrete gradient's correction term,
-which is $O(|\delta|^2)$ and needs third and fourth derivatives of $\mathcal{H}$ (through a
+which is $O(|\delta|^2)$ and needs higher derivatives of $\mathcal{H}$ (through a
 QR factorisation, for GONZALEZ-R). Dropping it, and freezing the Jacobian at the
 predictor, changes the Jacobian by $O(h^3)$, so the chord iteration
 $u \leftarrow u - \tilde J^{-1}F(u)$ still contracts by a factor $O(h^3)$ per

@@ -1,0 +1,257 @@
+"""Derivatives through whole trajectories of every method: reverse mode against central
+finite differences, forward mode against reverse mode, the exact identity
+dH(y_N)/dtheta = dH(y_0)/dtheta of the energy-preserving methods, derivatives with
+respect to system parameters, and NaN derivatives through failed runs.
+
+Each case is a map theta -> (initial state, args) on the constraint, with theta holding
+the initial positions, an unprojected momentum and the system's parameters, and the
+outputs F(theta) = (a fixed linear functional of y_N, H(y_N), H(y_0)). One jitted,
+vmapped program per case returns F and its reverse-mode Jacobian at theta and at the
+2 d finite-difference points, so the finite differences cost no extra compilation."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import pytest
+
+import nhjax as nh
+
+
+N_STEPS = 200
+SLEIGH = nh.examples.chaplygin_sleigh()
+SLEIGH_PARAMETERS = ("J", "a", "m")
+
+
+def _gearbox_with_parameters():
+    """The gearbox of §4.4 with a spring stiffness in H and a gear ratio in A, so that
+    derivatives with respect to `args` pass through both."""
+
+    def hamiltonian(q, p, args):
+        springs = 0.5 * args["stiffness"] * (q[0] ** 2 + q[1] ** 2)
+        return 0.5 * p @ p + springs + jnp.cos(q[2]) - 0.2 * jnp.sin(2 * q[2])
+
+    def constraints(q, args):
+        return jnp.stack([jnp.ones_like(q[2]), args["gear"] * jnp.sin(q[2]), jnp.zeros_like(q[2])])[None]
+
+    return nh.NonholonomicSystem(hamiltonian, constraints)
+
+
+GEARBOX = _gearbox_with_parameters()
+
+
+def _canonical_case(system, names, q0, momentum, parameters, dt):
+    """theta = (q0, unprojected p0, parameters) for a `NonholonomicSystem`."""
+    n = q0.shape[0]
+
+    def build(theta):
+        args = {name: theta[2 * n + i] for i, name in enumerate(names)}
+        q = theta[:n]
+        return (q, system.project_momentum(q, theta[n : 2 * n], args)), args
+
+    theta = jnp.concatenate([q0, momentum, jnp.asarray(parameters)])
+    return system, build, theta, dt
+
+
+def _gearbox_case():
+    return _canonical_case(
+        GEARBOX,
+        ("stiffness", "gear"),
+        jnp.array([0.6, -0.4, 0.3]),
+        jnp.array([-0.3, 0.8, 0.5]),
+        (1.3, 0.8),
+        0.05,
+    )
+
+
+def _sleigh_case():
+    q0 = jnp.array([0.2, -0.1, 0.3])
+    p0 = SLEIGH.from_adapted(jnp.array([0.2, -0.1, 0.3, 0.5, -0.6]), SLEIGH.args)[1]
+    return _canonical_case(
+        SLEIGH.canonical, SLEIGH_PARAMETERS, q0, p0, [SLEIGH.args[k] for k in SLEIGH_PARAMETERS], 0.1
+    )
+
+
+def _adapted_sleigh_case():
+    """The discrete-gradient method on the sleigh's reduced equations: theta = (x0,
+    parameters)."""
+
+    def build(theta):
+        return theta[:5], {name: theta[5 + i] for i, name in enumerate(SLEIGH_PARAMETERS)}
+
+    x0 = jnp.array([0.2, -0.1, 0.3, 0.5, -0.6])
+    theta = jnp.concatenate([x0, jnp.array([SLEIGH.args[k] for k in SLEIGH_PARAMETERS])])
+    return SLEIGH.adapted, build, theta, 0.1
+
+
+CASES = {
+    "gearbox": _gearbox_case,
+    "sleigh": _sleigh_case,
+    "adapted sleigh": _adapted_sleigh_case,
+}
+METHODS = {
+    "GONZALEZ-R": nh.GonzalezR(),
+    "GONZALEZ-F": nh.GonzalezF(),
+    "SI-DLA": nh.SIDLA(),
+    "I-DLA": nh.IDLA(),
+    "SPARK": nh.SPARK(),
+    "DiscreteGradient": nh.DiscreteGradient(),
+}
+ENERGY_PRESERVING = ("GONZALEZ-R", "GONZALEZ-F", "DiscreteGradient")
+PARAMETRISED = [
+    (method, case)
+    for method in METHODS
+    for case in (("adapted sleigh",) if method == "DiscreteGradient" else ("gearbox", "sleigh"))
+]
+# Forward mode on every method for the gearbox, and for the sleigh where the frame and the
+# metric depend on q: each case is one more compilation.
+FORWARD_MODE = [
+    (method, case)
+    for method, case in PARAMETRISED
+    if case != "sleigh" or method == "GONZALEZ-R"
+]
+
+
+def _gearbox_start():
+    _, build, theta, _ = _gearbox_case()
+    return build(theta)
+
+
+def _outputs(case, method, adjoint=None):
+    """theta -> F(theta) = (weights . y_N, H(y_N), H(y_0)), and theta."""
+    system, build, theta, dt = CASES[case]()
+
+    def outputs(theta):
+        y0, args = build(theta)
+        solution = nh.integrate(
+            system, method, y0, dt, N_STEPS, args=args, save_every=N_STEPS, adjoint=adjoint
+        )
+        final = jnp.concatenate([y[-1] for y in jax.tree.leaves(solution.ys)])
+        weights = jnp.cos(jnp.arange(final.shape[0]) + 1.0)
+        return jnp.stack([weights @ final, solution.energy[-1], system.energy(y0, args)])
+
+    return outputs, theta
+
+
+def _values_and_jacobians(outputs, thetas):
+    """F and its reverse-mode Jacobian at each row of `thetas`: one compiled program."""
+
+    def one(theta):
+        values, pullback = jax.vjp(outputs, theta)
+        (jacobian,) = jax.vmap(pullback)(jnp.eye(values.shape[0], dtype=values.dtype))
+        return values, jacobian
+
+    return jax.jit(jax.vmap(one))(thetas)
+
+
+def _relative(a, b) -> float:
+    return float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
+
+
+@pytest.fixture(scope="module")
+def reverse_mode():
+    """(method, case) -> (theta, F and its Jacobian at theta, finite-difference Jacobian)."""
+    cache = {}
+
+    def get(method_name, case):
+        if (method_name, case) not in cache:
+            outputs, theta = _outputs(case, METHODS[method_name])
+            (d,) = theta.shape
+            steps = 1e-5 * (1 + jnp.abs(theta))
+            shifts = jnp.diag(steps)
+            thetas = jnp.concatenate([theta[None], theta + shifts, theta - shifts])
+            values, jacobians = _values_and_jacobians(outputs, thetas)
+            differences = (values[1 : d + 1] - values[d + 1 :]) / (2 * steps[:, None])
+            cache[method_name, case] = theta, values[0], jacobians[0], differences.T
+        return cache[method_name, case]
+
+    return get
+
+
+@pytest.mark.parametrize("method_name, case", PARAMETRISED)
+def test_reverse_mode_matches_finite_differences(reverse_mode, method_name, case):
+    """SPEC issue: relative error <= 1e-6 over 200 steps, with respect to the initial
+    state and the parameters, under jit and vmap."""
+    theta, _, jacobian, differences = reverse_mode(method_name, case)
+    assert bool(jnp.all(jnp.isfinite(jacobian)))
+    # The trajectory must depend on every component of theta, or the check is empty.
+    assert bool(jnp.all(jnp.abs(differences[0]) > 1e-6))
+    assert _relative(jacobian[0], differences[0]) <= 1e-6
+    assert _relative(jacobian[1], differences[1]) <= 1e-6
+
+
+@pytest.mark.parametrize("method_name, case", FORWARD_MODE)
+def test_forward_mode_matches_reverse_mode(reverse_mode, method_name, case):
+    """`jax.jacfwd` with `adjoint=diffrax.ForwardMode()` against `jax.jacrev` (the
+    default adjoint)."""
+    theta, _, reverse, _ = reverse_mode(method_name, case)
+    outputs, _ = _outputs(case, METHODS[method_name], adjoint=diffrax.ForwardMode())
+    forward = jax.jit(jax.jacfwd(outputs))(theta)
+    assert _relative(forward, reverse) <= 1e-10
+
+
+@pytest.mark.parametrize("method_name, case", PARAMETRISED)
+def test_energy_gradient_is_conserved(reverse_mode, method_name, case):
+    """H(y_N(theta)) = H(y_0(theta)) for every theta when a method preserves energy
+    exactly, so their gradients agree, with respect to the initial state and to the
+    parameters. Methods that do not preserve energy miss this by far more."""
+    _, _, jacobian, _ = reverse_mode(method_name, case)
+    mismatch = _relative(jacobian[1], jacobian[2])
+    if method_name in ENERGY_PRESERVING:
+        assert mismatch <= 1e-11
+    else:
+        assert mismatch >= 1e-6
+
+
+def test_failed_root_finds_give_nan_derivatives():
+    """A run whose root find fails (throw=False) has NaN derivatives: of the final
+    state, whose derivative would otherwise be zero (it is a NaN constant), and even of
+    the initial save, whose value is finite. Its neighbour in the batch keeps finite
+    derivatives."""
+    method = nh.GonzalezF(root_find_max_steps=6)
+    _, build, theta, _ = _gearbox_case()
+
+    def first_and_last(theta, dt):
+        y0, args = build(theta)
+        solution = nh.integrate(GEARBOX, method, y0, dt, 20, args=args, throw=False)
+        q = solution.ys[0]
+        return jnp.stack([jnp.sum(q[0]), jnp.sum(q[-1])]), solution.result
+
+    jacobian, result = jax.jit(jax.vmap(jax.jacrev(first_and_last, has_aux=True)))(
+        jnp.stack([theta, theta]), jnp.array([0.01, 1.0])
+    )
+    assert bool((result == nh.RESULTS.successful)[0])
+    assert bool((result == nh.RESULTS.root_find_not_converged)[1])
+    assert bool(jnp.all(jnp.isfinite(jacobian[0])))
+    assert bool(jnp.all(jnp.isnan(jacobian[1])))
+
+
+def test_failed_initial_state_gives_nan_derivatives():
+    """An initial state that violates the constraint (throw=False): NaN derivatives,
+    not the zeros of a NaN constant."""
+    _, build, theta, _ = _gearbox_case()
+
+    def initial_save(p):
+        (q0, _), args = build(theta)
+        solution = nh.integrate(GEARBOX, nh.SIDLA(), (q0, p), 0.1, 5, args=args, throw=False)
+        return jnp.sum(solution.ys[1][0]), solution.result
+
+    gradient, result = jax.grad(initial_save, has_aux=True)(jnp.array([1.0, 1.0, 0.0]))
+    assert result == nh.RESULTS.constraint_violated_initially
+    assert bool(jnp.all(jnp.isnan(gradient)))
+
+
+def test_failed_run_raises_under_grad_when_throwing():
+    y0, args = _gearbox_start()
+
+    def loss(p):
+        solution = nh.integrate(GEARBOX, nh.GonzalezF(root_find_max_steps=6), (y0[0], p), 1.0, 20, args=args)
+        return jnp.sum(solution.ys[0])
+
+    with pytest.raises(Exception, match="not solved to tolerance"):
+        jax.grad(loss)(y0[1])
+
+
+def test_adjoint_must_be_a_diffrax_adjoint():
+    y0, args = _gearbox_start()
+    with pytest.raises(ValueError, match="adjoint must be a diffrax adjoint"):
+        nh.integrate(GEARBOX, nh.SIDLA(), y0, 0.1, 2, args=args, adjoint="forward")
