@@ -92,19 +92,21 @@ def avf(
 
 
 def _third_directional_derivative(f, x, gradient, direction, args):
-    r"""$D^3 f(x)[u, u, u]$, $u$ = `direction`, `gradient` $= \nabla f(x)$, by the central second difference of the
-    first directional derivative $g(s) = Df(x + s\,Su)[Su]$, $S = \mathrm{diag}(1 + |x_i|)$:
-    $D^3f(x)[u, u, u] pprox (g(arepsilon) - 2g(0) + g(-arepsilon))
-    / (arepsilon^2 |S\hat u|^3 / |u|^3)$, rescaled, with $arepsilon = \epsilon^{1/4}$.
+    r"""$D^3 f(x)[u, u, u]$ for $u$ = `direction`, given `gradient` $= \nabla f(x)$:
+    the central second difference of the directional derivative
+    $g(s) = Df(x + s\,Sv)[Sv]$ along $Sv$, $v = S^{-1}u/|S^{-1}u|$,
+    $S = \mathrm{diag}(1 + |x_i|)$, at the step $\varepsilon = \epsilon^{1/4}$:
+    $D^3f(x)[u, u, u] \approx |S^{-1}u|^3\,(g(\varepsilon) - 2g(0) + g(-\varepsilon))
+    / \varepsilon^2$, with $g(0) = \nabla f(x)^T Sv$.
 
-    Its relative error, $arepsilon^2/12$ from truncation and $\epsilon/arepsilon^2$
+    Its relative error, $\varepsilon^2/12$ from truncation and $\epsilon/\varepsilon^2$
     from rounding, is about $\sqrt\epsilon$. Where it is used, in the correction term
-    below the switch, the correction is $O(	au^2)$ and the error it leaves in
-    (discGradEn) is below $10^{-8}	au^3 |D^3f| < \epsilon$. Nested forward-mode
-    autodiff would be exact, but its derivatives (needed by the implicit adjoint
-    through a root find) are fourth derivatives of $f$: for GONZALEZ-R, through the
-    QR factorisation, a graph that takes a minute to compile. The difference form
-    needs only first derivatives, and second ones for gradients.
+    below the switch, the correction is $O(\tau^2)$ and the error it leaves in
+    (discGradEn) is below $10^{-8}\tau^3 |D^3f| < \epsilon$. Nested forward-mode
+    autodiff would be exact, but the derivatives of the step's root (implicit function
+    theorem) would then need fourth derivatives of $f$: for GONZALEZ-R, through the QR
+    factorisation, a graph that takes a minute to compile. The difference form needs
+    only first derivatives, and second ones for gradients.
     """
     scale = jax.lax.stop_gradient(1.0 + jnp.abs(x))
     scaled = direction / scale

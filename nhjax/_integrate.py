@@ -133,9 +133,9 @@ def integrate(
     `dt`, `t0`, `y0` and float leaves of `args` are traced.
 
     **Derivatives.** Every output is differentiable with respect to `y0`, `args`, `dt`
-    and `t0`. Each step's root find is differentiated by the implicit function theorem
-    (optimistix's implicit adjoint, with the exact Jacobian of the step equations), not
-    through its iterations, so derivatives are those of the exact discrete flow.
+    and `t0`. Each step's root is differentiated by the implicit function theorem, with
+    the exact Jacobian of the step equations, not through the root finder's iterations,
+    so derivatives are those of the exact discrete flow.
     Reverse mode (`jax.grad`, `jax.jacrev`) uses the default `adjoint`,
     `diffrax.RecursiveCheckpointAdjoint()`: memory O(log n_steps) states plus the
     saves, time O(n log n). Forward mode (`jax.jvp`, `jax.jacfwd`) needs

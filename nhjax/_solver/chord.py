@@ -8,8 +8,8 @@ predictor, changes the Jacobian by $O(h^3)$, so the chord iteration
 $u \leftarrow u - \tilde J^{-1}F(u)$ still contracts by a factor $O(h^3)$ per
 iteration, at a fraction of the cost of Newton's method. The converged root is the same
 (to the tolerance), and derivatives of the root with respect to the inputs come from
-optimistix's implicit-function adjoint with the exact Jacobian of $F$, so they are exact
-too.
+the implicit function theorem with the exact Jacobian of $F$
+(`nhjax._solver.base._implicit_root`), so they are exact too.
 """
 
 from typing import Any
