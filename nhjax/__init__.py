@@ -7,6 +7,7 @@ conservation to roundoff. float32 works too, with tolerances that follow the dty
 
 from . import examples as examples
 from ._discrete_gradient import avf as avf, gonzalez as gonzalez, itoh_abe as itoh_abe
+from ._ensemble import integrate_ensemble as integrate_ensemble
 from ._integrate import (
     integrate as integrate,
     integrate_adaptive as integrate_adaptive,

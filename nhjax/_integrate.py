@@ -62,6 +62,15 @@ def check_step_counts(n_steps, save_every) -> None:
         )
 
 
+def check_step_size(dt) -> None:
+    """`ValueError` unless `dt` is a scalar, and positive where it is concrete (a traced
+    `dt <= 0` is reported at run time)."""
+    if jnp.ndim(dt) != 0:
+        raise ValueError(f"dt must be a scalar, got shape {jnp.shape(dt)}.")
+    if not isinstance(dt, jax.core.Tracer) and not dt > 0:
+        raise ValueError(f"dt must be positive, got dt={dt}.")
+
+
 def _save_observables(system):
     """The `SaveAt.fn` of both loops: the state and the system's observables."""
 
@@ -168,10 +177,7 @@ def integrate(
     or with `throw=False` set that code.
     """
     check_step_counts(n_steps, save_every)
-    if jnp.ndim(dt) != 0:
-        raise ValueError(f"dt must be a scalar, got shape {jnp.shape(dt)}.")
-    if not isinstance(dt, jax.core.Tracer) and not dt > 0:
-        raise ValueError(f"dt must be positive, got dt={dt}.")
+    check_step_size(dt)
     system.check_shapes(y0, args)
     dtype = _state_dtype(y0)
     return _integrate(

@@ -1,0 +1,156 @@
+"""Ensembles over several devices: a batch of initial states split over a 1-D device
+mesh, each device integrating its share with `jax.vmap` of `nhjax.integrate`."""
+
+from collections.abc import Sequence
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, PyTree
+
+from ._integrate import _trace_floats, check_step_counts, check_step_size, integrate, Solution
+from ._results import RESULTS
+from ._system import AbstractSystem
+
+
+_AXIS = "batch"
+
+
+def integrate_ensemble(
+    system: AbstractSystem,
+    method: diffrax.AbstractSolver,
+    y0s: PyTree[Array],
+    dt: float | Array,
+    n_steps: int,
+    args: PyTree = None,
+    save_every: int = 1,
+    throw: bool = True,
+    *,
+    t0: float | Array = 0.0,
+    check_constraint: bool = True,
+    devices: Sequence[jax.Device] | None = None,
+) -> Solution:
+    """`nhjax.integrate` for a batch of initial states, split over `devices`.
+
+    `y0s` holds the states along a leading batch axis of every leaf (size `B`), and
+    every trajectory shares `dt`, `n_steps`, `args` and `t0`. The batch is split over
+    a 1-D mesh of `devices` (default: all of `jax.devices()`, so CPU devices, GPUs, or
+    the devices of every host of a multi-process run) with `jax.shard_map`: each
+    device runs `jax.vmap(nhjax.integrate)` on its own `B / D` states, its own time loop
+    and root finds, with no communication between devices until the results are
+    gathered. `B` need not be a multiple of `D`: the batch is padded with copies of its
+    first state, whose results are dropped.
+
+    Returns a `Solution` whose every field has the leading batch axis (sharded over the
+    devices when `B` is a multiple of `D`); `result` holds one code per trajectory. A
+    trajectory that fails does not spoil the others. With `throw=True` any failure
+    raises a `RuntimeError` after the whole batch has run, naming the first failed
+    trajectory; this check runs on the host, so under `jax.jit` or `jax.grad` pass
+    `throw=False` and read each trajectory's `result`.
+
+    With one device this is `jax.vmap` of `nhjax.integrate` (and gives the same numbers);
+    with several, the same numbers divided among them.
+
+    The other arguments are those of `nhjax.integrate` (no progress meter: devices run
+    their shares independently).
+    """
+    check_step_counts(n_steps, save_every)
+    check_step_size(dt)
+    leaves = jax.tree.leaves(y0s)
+    if not leaves or any(jnp.ndim(leaf) < 1 for leaf in leaves):
+        raise ValueError("y0s must hold a batch of states: every leaf needs a leading batch axis.")
+    size = jnp.shape(leaves[0])[0]
+    if any(jnp.shape(leaf)[0] != size for leaf in leaves) or size == 0:
+        raise ValueError(
+            "Every leaf of y0s must have the same non-zero batch size along axis 0, got "
+            f"{[jnp.shape(leaf)[0] for leaf in leaves]}."
+        )
+    try:
+        system.check_shapes(jax.tree.map(lambda leaf: leaf[0], y0s), args)
+    except ValueError as error:
+        raise ValueError(f"Each state along y0s's leading batch axis: {error}") from error
+    devices = jax.devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("devices must name at least one device.")
+    mesh = Mesh(np.asarray(devices), (_AXIS,))
+    padded_size = -(-size // len(devices)) * len(devices)
+    padded = jax.tree.map(
+        lambda leaf: jnp.concatenate([leaf, jnp.repeat(leaf[:1], padded_size - size, axis=0)]),
+        y0s,
+    )
+    padded = jax.device_put(padded, NamedSharding(mesh, PartitionSpec(_AXIS)))
+    solution = _sharded_run(
+        system,
+        method,
+        padded,
+        dt,
+        t0,
+        _trace_floats(args),
+        check_constraint,
+        mesh=mesh,
+        n_steps=int(n_steps),
+        save_every=int(save_every),
+    )
+    if padded_size != size:
+        solution = jax.tree.map(lambda leaf: leaf[:size], solution)
+    if throw:
+        _raise_failures(solution.result)
+    return solution
+
+
+def _raise_failures(result: RESULTS) -> None:
+    """Raise, naming the first failed trajectory and its failure, if any failed. Done on
+    the host: a runtime error inside the sharded program would stop one device while
+    the others wait for it."""
+    codes = result._value
+    if isinstance(codes, jax.core.Tracer):
+        raise ValueError(
+            "integrate_ensemble(..., throw=True) checks the results on the host, so it "
+            "cannot run under a JAX transformation (jit, grad, vmap); pass throw=False "
+            "and read Solution.result."
+        )
+    codes = np.asarray(codes)
+    failed = np.flatnonzero(codes != RESULTS.successful._value)
+    if failed.size:
+        first = int(failed[0])
+        raise RuntimeError(
+            f"{failed.size} of {codes.size} trajectories failed; trajectory {first}: "
+            f"{RESULTS[jax.tree.map(lambda code: code[first], result)]}"
+        )
+
+
+@eqx.filter_jit
+def _sharded_run(system, method, y0s, dt, t0, args, check_constraint, *, mesh, n_steps, save_every):
+    def run_share(y0s, dt, t0, args, check_constraint):
+        def run_one(y0):
+            return integrate(
+                system,
+                method,
+                y0,
+                dt,
+                n_steps,
+                args,
+                save_every,
+                throw=False,
+                t0=t0,
+                check_constraint=check_constraint,
+            )
+
+        return jax.vmap(run_one)(y0s)
+
+    arrays, static = eqx.partition(args, eqx.is_array)
+
+    def run_share_arrays(y0s, dt, t0, arrays, check_constraint):
+        return run_share(y0s, dt, t0, eqx.combine(arrays, static), check_constraint)
+
+    replicated = PartitionSpec()
+    return jax.shard_map(
+        run_share_arrays,
+        mesh=mesh,
+        in_specs=(PartitionSpec(_AXIS), replicated, replicated, replicated, replicated),
+        out_specs=PartitionSpec(_AXIS),
+        check_vma=False,
+    )(y0s, jnp.asarray(dt), jnp.asarray(t0), arrays, jnp.asarray(check_constraint))

@@ -1,0 +1,109 @@
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+import nhjax as nh
+
+
+GEARBOX = nh.examples.gearbox()
+METHOD = nh.GonzalezF()
+
+
+def _states(count, seed=1):
+    return jax.vmap(GEARBOX.random_initial_state)(jax.random.split(jax.random.key(seed), count))
+
+
+def _max_difference(a, b):
+    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_one_device_equals_vmap_of_integrate():
+    states = _states(3)
+    sharded = nh.integrate_ensemble(GEARBOX.canonical, METHOD, states, 0.1, 40, save_every=10)
+    reference = jax.vmap(lambda y: nh.integrate(GEARBOX.canonical, METHOD, y, 0.1, 40, save_every=10))(states)
+    assert sharded.ys[0].shape == (3, 5, 3)
+    assert _max_difference(sharded.ys, reference.ys) <= 1e-13
+    assert _max_difference(sharded.energy, reference.energy) <= 1e-13
+    assert jnp.all(sharded.stats["root_find_steps"] == reference.stats["root_find_steps"])
+
+
+def test_each_trajectory_has_its_own_result():
+    q, p = _states(3)
+    q = q.at[1, 0].set(jnp.nan)
+    solution = nh.integrate_ensemble(GEARBOX.canonical, METHOD, (q, p), 0.1, 20, throw=False)
+    codes = [nh.RESULTS[jax.tree.map(lambda c: c[i], solution.result)] for i in range(3)]
+    assert codes[1] == nh.RESULTS[nh.RESULTS.nonfinite_initial_state]
+    assert codes[0] == codes[2] == nh.RESULTS[nh.RESULTS.successful]
+    assert jnp.all(jnp.isfinite(solution.ys[0][jnp.array([0, 2])]))
+    with pytest.raises(RuntimeError, match=r"1 of 3 trajectories failed; trajectory 1: The initial state contains NaN"):
+        nh.integrate_ensemble(GEARBOX.canonical, METHOD, (q, p), 0.1, 20)
+
+
+def test_throw_under_jit_is_refused():
+    run = jax.jit(lambda y: nh.integrate_ensemble(GEARBOX.canonical, METHOD, y, 0.1, 10).ys)
+    with pytest.raises(ValueError, match="throw=False"):
+        run(_states(2))
+
+
+@pytest.mark.parametrize(
+    ("y0s", "dt", "match"),
+    [
+        ((jnp.zeros(3), jnp.zeros(3)), 0.1, "leading batch axis: q must be a 1-D array"),
+        ((jnp.zeros((2, 3)), jnp.zeros((3, 3))), 0.1, "same non-zero batch size"),
+        ((jnp.zeros((2, 3)), jnp.zeros((2, 4))), 0.1, "leading batch axis: q and p must have the same shape"),
+        (_states(2), -0.1, "dt must be positive"),
+    ],
+)
+def test_bad_input(y0s, dt, match):
+    with pytest.raises(ValueError, match=match):
+        nh.integrate_ensemble(GEARBOX.canonical, METHOD, y0s, dt, 10)
+
+
+_TWO_DEVICES = textwrap.dedent(
+    """
+    import json
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import nhjax as nh
+
+    gearbox = nh.examples.gearbox()
+    method = nh.GonzalezF()
+    out = dict(devices=len(jax.devices()))
+    for count in (4, 5):
+        states = jax.vmap(gearbox.random_initial_state)(jax.random.split(jax.random.key(1), count))
+        sharded = nh.integrate_ensemble(gearbox.canonical, method, states, 0.1, 40, save_every=10)
+        alone = jax.vmap(lambda y: nh.integrate(gearbox.canonical, method, y, 0.1, 40, save_every=10))(states)
+        leaves = zip(jax.tree.leaves((sharded.ys, sharded.energy)), jax.tree.leaves((alone.ys, alone.energy)))
+        out[count] = dict(
+            difference=max(float(jnp.max(jnp.abs(a - b))) for a, b in leaves),
+            shape=list(sharded.ys[0].shape),
+            devices_holding=len(sharded.ys[0].sharding.device_set),
+            spec=list(sharded.ys[0].sharding.spec),
+        )
+    print(json.dumps(out))
+    """
+)
+
+
+def test_two_cpu_devices_give_the_unsharded_result():
+    """A fresh process with two CPU devices: the batch split over both (even, and odd
+    with padding) gives the numbers of one `vmap` on one device."""
+    environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    completed = subprocess.run(
+        [sys.executable, "-c", _TWO_DEVICES], env=environment, capture_output=True, text=True, timeout=600
+    )
+    assert completed.returncode == 0, completed.stderr
+    out = json.loads(completed.stdout.strip().splitlines()[-1])
+    assert out["devices"] == 2
+    for count in ("4", "5"):
+        assert out[count]["shape"] == [int(count), 5, 3]
+        assert out[count]["difference"] <= 1e-13
+    assert out["4"]["devices_holding"] == 2
+    assert out["4"]["spec"] == ["batch"]
