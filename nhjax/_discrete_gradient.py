@@ -163,9 +163,11 @@ def gonzalez_correction(
     args: Any = None,
     *,
     taylor: bool = True,
+    f_x: Float[Array, ""] | None = None,
 ) -> Float[Array, " N"]:
     r"""$g + \frac{f(x') - f(x) - g^T\delta}{|\delta|^2}\delta$ for a given midpoint
-    gradient $g$: (gonzales) when $g = \nabla f(\bar x)$.
+    gradient $g$: (gonzales) when $g = \nabla f(\bar x)$. `f_x`: $f(x)$, if the caller
+    has it (a root find evaluates this with one $x$ and many $x'$).
 
     (discGradEn) holds for any $g$. With `taylor=True`, $g$ must be $\nabla f(\bar x)$
     and nearly equal points use the Taylor form of `gonzalez`. With `taylor=False` (for
@@ -180,7 +182,7 @@ def gonzalez_correction(
         near = jnp.all(delta == 0)
 
     def printed():
-        numerator = f(x1, args) - f(x, args) - gradient @ delta
+        numerator = f(x1, args) - (f(x, args) if f_x is None else f_x) - gradient @ delta
         return (numerator / jnp.where(near, 1.0, delta @ delta)) * delta
 
     def taylor_form():

@@ -157,7 +157,7 @@ class NonholonomicSystem(AbstractSystem):
 
     def from_reduced(self, zeta, args, signs) -> tuple[Array, Array]:
         """$(q, p)$ from $\\zeta = (q, \\rho)$, eq. (ptoptilde)."""
-        q, rho = _split_reduced(zeta, signs)
+        q, rho = split_reduced(zeta, signs)
         return q, self.momentum(q, rho, args, signs)
 
     def reduced(
@@ -230,7 +230,7 @@ class NonholonomicSystem(AbstractSystem):
         return quadratic & no_linear & symmetric & positive
 
 
-def _split_reduced(zeta, signs):
+def split_reduced(zeta, signs):
     """$(q, \\rho)$ from $\\zeta$ of size $n + m = 2n - k$."""
     n = (zeta.shape[0] + signs.shape[0]) // 2
     return zeta[:n], zeta[n:]
@@ -268,7 +268,8 @@ class ReducedSystem(eqx.Module):
         q, p = self.system.from_reduced(zeta, args, self.signs)
         return self.system.hamiltonian(q, p, args)
 
-    def _frame_and_derivative(self, q, args):
+    def frame_and_derivative(self, q, args):
+        r"""$X(q)$ and $\partial X/\partial q$, shape (n, m, n)."""
         frame = lambda x: self.system.frame(x, args, self.signs)  # noqa: E731
         if self.derivative == "autodiff":
             derivative, value = jax.jacfwd(lambda x: (frame(x), frame(x)), has_aux=True)(q)
@@ -280,8 +281,14 @@ class ReducedSystem(eqx.Module):
 
     def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
         r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
-        q, rho = _split_reduced(zeta, self.signs)
-        frame, derivative = self._frame_and_derivative(q, args)
+        q, rho = split_reduced(zeta, self.signs)
+        frame, derivative = self.frame_and_derivative(q, args)
+        return self.structure_and_gradient_in_frame(q, rho, frame, derivative, args)
+
+    def structure_and_gradient_in_frame(self, q, rho, frame, derivative, args):
+        r"""`structure_and_gradient` at $(q, \rho)$ from the frame and its derivative at
+        $q$ (`frame_and_derivative`): how it depends on $\rho$ at fixed $q$, without
+        the QR."""
         p, y = self.system._momentum_in_frame(q, frame, rho, args)
         along_frame = jnp.einsum("j,jai,ib->ab", p, derivative, frame)
         structure = adapted_structure(frame, along_frame - along_frame.T)

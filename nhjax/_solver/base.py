@@ -108,8 +108,9 @@ class AbstractMethod(diffrax.AbstractSolver):
       unknowns (a 1-D array) and everything the residual needs;
     - `residual(unknowns, data)`, whose root is the step;
     - `simplified_residual(unknowns, data)`: a cheaper function with nearly the same
-      Jacobian (see `nhjax._solver.chord`), whose Jacobian at the guess the default
-      chord root finder uses; by default the residual itself;
+      Jacobian (see `nhjax._solver.chord`), whose Jacobian at the guess,
+      `chord_jacobian(unknowns, data)` (by default `jax.jacfwd`), the default chord root
+      finder uses; by default the residual itself;
     - `complete(unknowns, data) -> (y1, failure, carry)`: the new state, an nhjax code
       for failures only the method can detect, and what the next step receives as
       `carry` (the first step receives `initial_carry(system, y0, args)`, by default
@@ -136,6 +137,9 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     def simplified_residual(self, unknowns, data) -> Array:
         return self.residual(unknowns, data)
+
+    def chord_jacobian(self, unknowns, data) -> Array:
+        return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
     def complete(self, unknowns, data) -> tuple[Any, RESULTS, PyTree]:
         raise NotImplementedError
@@ -169,7 +173,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         root_finder = self._root_finder(guess.dtype)
         options = {}
         if isinstance(root_finder, Chord):
-            options["inverse"] = invert(jax.jacfwd(self.simplified_residual)(guess, fixed_data))
+            options["inverse"] = invert(self.chord_jacobian(guess, fixed_data))
         solution = optx.root_find(
             self.residual,
             root_finder,
