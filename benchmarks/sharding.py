@@ -31,7 +31,7 @@ def main():
     os.environ["JAX_PLATFORMS"] = options.platform
 
     import jax
-    import jax.numpy as jnp
+    import numpy as np
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
@@ -51,7 +51,7 @@ def main():
         finals[label] = run(on).ys
         seconds[label] = statistics.median([timed(run, on) for _ in range(options.repeats)])
     difference = max(
-        float(jnp.max(jnp.abs(a - b)))
+        float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
         for a, b in zip(jax.tree.leaves(finals["one_device"]), jax.tree.leaves(finals["all_devices"]))
     )
     trajectory_steps = options.batch * options.steps

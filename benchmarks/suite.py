@@ -300,7 +300,13 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "suite.json"))
+    parser.add_argument("--tables-only", action="store_true", help="rewrite the .md tables from the JSON at --out")
     options = parser.parse_args()
+    table = pathlib.Path(options.out).with_suffix(".md")
+    if options.tables_only:
+        table.write_text(markdown(json.loads(pathlib.Path(options.out).read_text())))
+        print(table.read_text())
+        return
     options.t1 = 100.0 if options.quick else 1000.0
     options.steps = 200 if options.quick else 2000
     options.batch_work = 4000 if options.quick else 40_000
@@ -326,7 +332,6 @@ def main():
     results["sharding"] = sharding(options)
     results["suite_seconds"] = time.perf_counter() - start
     write(results, options.out)
-    table = pathlib.Path(options.out).with_suffix(".md")
     table.write_text(markdown(results))
     print(table.read_text())
 
