@@ -8,6 +8,7 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 
+from nhjax._solver.base import AbstractMethod
 from nhjax._solver.chord import invert
 
 
@@ -33,10 +34,11 @@ def per_call_us(function, x, repeats: int = 200) -> float:
 
 def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int = 200) -> dict:
     """µs of each part of one step of `method` (an `nhjax.AbstractMethod`) from `y0`:
-    `setup` (state to unknowns, predictor), `chord_matrix` (the Jacobian of the
+    `setup` (state to unknowns, predictor), `chord_matrix` (the method's Jacobian of the
     simplified residual at the guess, and its inverse: once per step), `residual` (once
     per root-finder iteration) and `complete` (unknowns to the new state). `model` is
-    setup + chord_matrix + iterations x residual + complete."""
+    setup + chord_matrix + iterations x residual + complete. For a method with its own
+    `chord_jacobian`, `chord_matrix_by_jacfwd` is the generic `jax.jacfwd` it replaces."""
     carry = method.initial_carry(system, y0, args)
     guess, data = method.setup(system, h, y0, args, carry)
     q_or_x = jax.tree.leaves(y0)[0]
@@ -51,6 +53,11 @@ def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int
         residual=per_call_us(lambda u: method.residual(u, data), guess, repeats),
         complete=per_call_us(lambda u: jax.tree.leaves(method.complete(u, data)[0]), guess, repeats),
     )
+    if type(method).chord_jacobian is not AbstractMethod.chord_jacobian:
+        # The method's own chord Jacobian against the generic one it replaces.
+        parts["chord_matrix_by_jacfwd"] = per_call_us(
+            lambda u: invert(jax.jacfwd(method.simplified_residual)(u, data)), guess, repeats
+        )
     parts["model"] = (
         parts["setup"] + parts["chord_matrix"] + iterations * parts["residual"] + parts["complete"]
     )

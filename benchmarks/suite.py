@@ -58,8 +58,10 @@ NHJAX_METHODS = {
 DIFFRAX_SOLVERS = {"Tsit5": diffrax.Tsit5(), "Dopri8": diffrax.Dopri8(), "Kvaerno5": diffrax.Kvaerno5()}
 SCIPY_SOLVERS = ("DOP853", "Radau")
 STANDARD_TOLERANCE = 1e-8
-SWEEP = {"Tsit5": (1e-5, 1e-7, 1e-9, 1e-11), "Dopri8": (1e-5, 1e-7, 1e-9, 1e-11),
-         "Kvaerno5": (1e-5, 1e-7, 1e-9), "DOP853": (1e-5, 1e-7, 1e-9), "Radau": (1e-5, 1e-7)}
+# Tolerances that bracket GONZALEZ-R's wall time where a solver can reach it; the
+# implicit solvers are slower than it at every tolerance, so their loosest ones count.
+SWEEP = {"Tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "Dopri8": (1e-6, 1e-8, 1e-10, 1e-12),
+         "Kvaerno5": (1e-5, 1e-7), "DOP853": (1e-4, 1e-6, 1e-8), "Radau": (1e-4, 1e-6)}
 SCALING_SIZES = (1, 3, 10, 30)
 
 
