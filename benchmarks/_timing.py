@@ -44,10 +44,15 @@ def per_step(system, method, y0, steps, repeats, args=None, dt=0.1):
 
 
 def batch_rate(system, method, states, steps, repeats, args=None, dt=0.1):
-    """Median trajectory-steps/s of a vmapped batch (leading axis of `states`)."""
+    """(median trajectory-steps/s, number of failed trajectories) of a vmapped batch
+    (leading axis of `states`), run with `throw=False` so that a failure is counted,
+    not raised."""
     import nhjax as nh
 
-    run = jax.jit(jax.vmap(lambda y0: nh.integrate(system, method, y0, dt, steps, args=args, save_every=steps).ys))
-    timed(run, states)
+    run = jax.jit(jax.vmap(
+        lambda y0: nh.integrate(system, method, y0, dt, steps, args=args, save_every=steps, throw=False).result
+    ))
+    results = run(states)
+    failed = int(jax.numpy.sum(results != nh.RESULTS.successful))
     size = jax.tree.leaves(states)[0].shape[0]
-    return size * steps / statistics.median([timed(run, states) for _ in range(repeats)])
+    return size * steps / statistics.median([timed(run, states) for _ in range(repeats)]), failed

@@ -60,7 +60,7 @@ SCIPY_SOLVERS = ("DOP853", "Radau")
 STANDARD_TOLERANCE = 1e-8
 # Tolerances that bracket GONZALEZ-R's wall time where a solver can reach it; the
 # implicit solvers are slower than it at every tolerance, so their loosest ones count.
-SWEEP = {"Tsit5": (1e-6, 1e-8, 1e-10, 1e-12), "Dopri8": (1e-6, 1e-8, 1e-10, 1e-12),
+SWEEP = {"Tsit5": (1e-6, 1e-8, 1e-10, 1e-12, 1e-14), "Dopri8": (1e-6, 1e-8, 1e-10, 1e-12, 1e-14),
          "Kvaerno5": (1e-5, 1e-7), "DOP853": (1e-4, 1e-6, 1e-8), "Radau": (1e-4, 1e-6)}
 SCALING_SIZES = (1, 3, 10, 30)
 
@@ -106,13 +106,13 @@ def methods_table(problem, options):
         methods.append(("DiscreteGradient (reduced form)", system, nh.DiscreteGradient(), x0, states))
     for name, system, method, y0, states in methods:
         us, compile_s, iterations = per_step(system, method, y0, options.steps, options.repeats)
-        rates = {}
+        rates, failed = {}, {}
         for size in BATCHES:
             batch_steps = max(20, min(options.steps, options.batch_work // size))
             subset = jax.tree.map(lambda leaf: leaf[:size], states)
-            rates[str(size)] = batch_rate(system, method, subset, batch_steps, options.repeats)
+            rates[str(size)], failed[str(size)] = batch_rate(system, method, subset, batch_steps, options.repeats)
         rows[name] = dict(us_per_step=us, compile_s=compile_s, root_find_iterations_per_step=iterations,
-                          trajectory_steps_per_s=rates)
+                          trajectory_steps_per_s=rates, failed_trajectories=failed)
         print(f"  {name:32s} {us:9.2f} µs/step  compile {compile_s:5.1f} s  batches "
               + "  ".join(f"{size}: {rate:.2e}" for size, rate in rates.items()), flush=True)
     return rows
@@ -199,18 +199,20 @@ def equal_wall_time(problem, gonzalez_r_seconds, options):
 
 
 def _interpolate(points, seconds):
-    """log(error) against log(time), piecewise linear, at `seconds`; outside the
-    measured range the nearest point is used and `extrapolated` says which way (a peer
-    slower than GONZALEZ-R even at its loosest tolerance keeps that tolerance's error,
-    which favours the peer)."""
+    """log(error) against log(time), piecewise linear, at `seconds`. Outside the
+    measured range the nearest point is used, and `range` says which way that leans: a
+    peer slower than GONZALEZ-R even at its loosest tolerance is credited with that
+    tolerance's error although it took longer (favours the peer); a peer faster even at
+    its tightest tolerance is charged that tolerance's error although it had time left
+    (favours nhjax)."""
     ordered = sorted(points, key=lambda point: point["seconds"])
     times = np.log([point["seconds"] for point in ordered])
     errors = np.log([max(point["max_energy_error"], 1e-300) for point in ordered])
-    where = "inside"
+    where = "interpolated"
     if np.log(seconds) < times[0]:
-        where = "peer slower at every tolerance"
+        where = "peer slower even at its loosest tolerance (favours the peer)"
     elif np.log(seconds) > times[-1]:
-        where = "peer faster at every tolerance"
+        where = "peer faster even at its tightest tolerance (favours nhjax)"
     return dict(energy_error_at_equal_time=float(np.exp(np.interp(np.log(seconds), times, errors))), range=where)
 
 
@@ -270,6 +272,10 @@ def markdown(results):
         for name, row in results["long_runs"][system].items():
             lines.append(f"| {name} | {row['seconds_per_unit_time'] * 1e3:.3g} | {row['time_ratio_to_gonzalez_r']:.3g} | "
                          f"{row['max_energy_error']:.2e} | {row['max_constraint_error']:.2e} |")
+        failures = [f"{name} ({', '.join(f'{count} of {size}' for size, count in row['failed_trajectories'].items() if count)})"
+                    for name, row in results["methods"][system].items() if any(row["failed_trajectories"].values())]
+        if failures:
+            lines += ["", "Trajectories whose root find failed in the batch runs: " + "; ".join(failures) + "."]
         numpy_row = results["long_runs"][system]["GONZALEZ-R (NumPy + fsolve)"]
         lines += ["", f"GONZALEZ-R per step: nhjax {numpy_row['nhjax_speedup_per_step']:.0f}x faster than NumPy + fsolve "
                   f"({numpy_row['us_per_step']:.0f} µs/step).", "",
