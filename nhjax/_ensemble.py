@@ -51,8 +51,9 @@ def integrate_ensemble(
     trajectory; this check runs on the host, so under `jax.jit` or `jax.grad` pass
     `throw=False` and read each trajectory's `result`.
 
-    With one device this is `jax.vmap` of `nhjax.integrate` (and gives the same numbers);
-    with several, the same numbers divided among them.
+    With one device this is `jax.vmap` of `nhjax.integrate`; with several, the same
+    computation divided among them. Results agree to rounding, not bit for bit: the
+    size of each device's batch changes how XLA vectorises it.
 
     The other arguments are those of `nhjax.integrate` (no progress meter: devices run
     their shares independently).
@@ -124,31 +125,21 @@ def _raise_failures(result: RESULTS) -> None:
 
 @eqx.filter_jit
 def _sharded_run(system, method, y0s, dt, t0, args, check_constraint, *, mesh, n_steps, save_every):
-    def run_share(y0s, dt, t0, args, check_constraint):
-        def run_one(y0):
-            return integrate(
-                system,
-                method,
-                y0,
-                dt,
-                n_steps,
-                args,
-                save_every,
-                throw=False,
-                t0=t0,
-                check_constraint=check_constraint,
-            )
-
-        return jax.vmap(run_one)(y0s)
-
+    # shard_map takes arrays only; the rest of args is closed over.
     arrays, static = eqx.partition(args, eqx.is_array)
 
-    def run_share_arrays(y0s, dt, t0, arrays, check_constraint):
-        return run_share(y0s, dt, t0, eqx.combine(arrays, static), check_constraint)
+    def run_share(y0s, dt, t0, arrays, check_constraint):
+        share_args = eqx.combine(arrays, static)
+        return jax.vmap(
+            lambda y0: integrate(
+                system, method, y0, dt, n_steps, share_args, save_every,
+                throw=False, t0=t0, check_constraint=check_constraint,
+            )
+        )(y0s)
 
     replicated = PartitionSpec()
     return jax.shard_map(
-        run_share_arrays,
+        run_share,
         mesh=mesh,
         in_specs=(PartitionSpec(_AXIS), replicated, replicated, replicated, replicated),
         out_specs=PartitionSpec(_AXIS),

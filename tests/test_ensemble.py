@@ -33,6 +33,25 @@ def test_one_device_equals_vmap_of_integrate():
     assert jnp.all(sharded.stats["root_find_steps"] == reference.stats["root_find_steps"])
 
 
+def test_parameters_reach_every_trajectory():
+    """`args` with array and float leaves (the sleigh's J, a, m) is shared by the batch:
+    changing J changes every trajectory as it changes `integrate`'s."""
+    sleigh = nh.examples.chaplygin_sleigh()
+
+    def run(args):
+        states = jax.vmap(lambda rho2: sleigh.from_adapted(sleigh.initial_state(rho2=rho2), args))(
+            jnp.array([-0.6, -0.3])
+        )
+        sharded = nh.integrate_ensemble(sleigh.canonical, METHOD, states, 0.1, 20, args=args)
+        reference = jax.vmap(lambda y: nh.integrate(sleigh.canonical, METHOD, y, 0.1, 20, args=args))(states)
+        return sharded, reference
+
+    sharded, reference = run(dict(sleigh.args, J=jnp.asarray(6.0)))
+    default, _ = run(sleigh.args)
+    assert _max_difference(sharded.ys, reference.ys) <= 1e-13
+    assert _max_difference(sharded.ys, default.ys) > 1e-5
+
+
 def test_each_trajectory_has_its_own_result():
     q, p = _states(3)
     q = q.at[1, 0].set(jnp.nan)
