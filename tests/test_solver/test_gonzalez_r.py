@@ -2,6 +2,7 @@
 symmetry, the finite-difference option, and failures."""
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -110,6 +111,49 @@ def test_one_step_is_the_discrete_gradient_method_on_the_reduced_system():
     q, p = system.from_reduced(reduced.ys[-1], args, signs)
     np.testing.assert_allclose(direct.ys[0][-1], q, atol=1e-15)
     np.testing.assert_allclose(direct.ys[1][-1], p, atol=1e-15)
+
+
+@pytest.mark.parametrize("name", list(_starts()))
+def test_chord_jacobian_approximates_the_simplified_residuals_jacobian(name):
+    """The block matrix the chord iteration uses (q columns by forward differences)
+    against `jax.jacfwd` of the simplified residual, at the initial guess of a step:
+    agreement to about the differences' sqrt(eps) relative error, not to roundoff."""
+    example, y0 = _starts()[name]
+    system, args = example.canonical, example.args
+    guess, data = METHOD.setup(system, jnp.asarray(0.1), y0, args, METHOD.initial_carry(system, y0, args))
+    exact = jax.jacfwd(METHOD.simplified_residual)(guess, data)
+    approximate = METHOD.chord_jacobian(guess, data)
+    identity = jnp.eye(guess.shape[0])
+    error = float(jnp.max(jnp.abs(approximate - exact)))
+    assert error <= 1e-7 * float(jnp.max(jnp.abs(exact - identity)))
+
+
+def test_predictor_is_third_order_once_two_steps_are_known():
+    """The guess of a step (the last mean velocity extrapolated from the two before)
+    against the step's root: O(h^3), where explicit Euler's first guess is O(h^2)."""
+    example, y0 = _starts()["sleigh, q-dependent metric"]
+    system, args = example.canonical, example.args
+
+    @eqx.filter_jit
+    def guess_error_and_step(h, t0, y, state):
+        guess, data = METHOD.setup(system, h, y, args, state.carry)
+        y, _, _, state, result = METHOD.step(system, t0, t0 + h, y, args, state, False)
+        increment = state.carry[0] - data[1]
+        return jnp.max(jnp.abs(data[3] * guess - increment)), y, state, result
+
+    first_errors, fourth_errors = [], []
+    for h in STEP_SIZES:
+        h = jnp.asarray(h)
+        state, y = METHOD.init(system, 0.0, h, y0, args), y0
+        errors = []
+        for step in range(4):
+            error, y, state, result = guess_error_and_step(h, step * h, y, state)
+            assert result == diffrax.RESULTS.successful
+            errors.append(float(error))
+        first_errors.append(errors[0])
+        fourth_errors.append(errors[3])
+    assert fitted_order(STEP_SIZES, first_errors) <= 2.2, first_errors
+    assert fitted_order(STEP_SIZES, fourth_errors) >= 2.8, fourth_errors
 
 
 @pytest.mark.parametrize("name", ["sleigh, q-dependent metric", "disk, k = 2"])
