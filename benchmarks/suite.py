@@ -195,16 +195,15 @@ def equal_wall_time(problem, gonzalez_r_seconds, options):
                 seconds, drift = statistics.median(run["seconds"] for run in runs), runs[0]
             points.append(dict(rtol=tolerance, seconds=seconds, max_energy_error=drift["max_energy_error"],
                                max_constraint_error=drift["max_constraint_error"]))
-        out[name] = dict(
-            points=points,
-            **_interpolate(points, gonzalez_r_seconds, "max_energy_error", "energy_error_at_equal_time"),
-            **_interpolate(points, gonzalez_r_seconds, "max_constraint_error", "constraint_error_at_equal_time"),
-        )
+        energy, where = _interpolate(points, gonzalez_r_seconds, "max_energy_error")
+        constraint, _ = _interpolate(points, gonzalez_r_seconds, "max_constraint_error")
+        out[name] = dict(points=points, energy_error_at_equal_time=energy,
+                         constraint_error_at_equal_time=constraint, range=where)
     return out
 
 
-def _interpolate(points, seconds, error_key, name):
-    """log(error) against log(time), piecewise linear, at `seconds`. Outside the
+def _interpolate(points, seconds, error_key):
+    """(error, range): log(error) against log(time), piecewise linear, at `seconds`. Outside the
     measured range the nearest point is used, and `range` says which way that leans: a
     peer slower than GONZALEZ-R even at its loosest tolerance is credited with that
     tolerance's error although it took longer (favours the peer); a peer faster even at
@@ -218,7 +217,7 @@ def _interpolate(points, seconds, error_key, name):
         where = "peer slower even at its loosest tolerance (favours the peer)"
     elif np.log(seconds) > times[-1]:
         where = "peer faster even at its tightest tolerance (favours nhjax)"
-    return {name: float(np.exp(np.interp(np.log(seconds), times, errors))), "range": where}
+    return float(np.exp(np.interp(np.log(seconds), times, errors))), where
 
 
 def scaling(options):
