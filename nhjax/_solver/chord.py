@@ -68,8 +68,8 @@ class Chord(optx.AbstractRootFinder):
     on, the correction and the residual are both below `STALL_FACTOR * atol` and the
     correction is no longer halving: the root is then known to a few tolerances, which
     is all the rounding allows. (With a contraction rate $c$, a slowly converging
-    iteration accepted this way is within $8c/(1 - c)$ tolerances of its root; for the
-    nhjax methods $c = O(h^2)$.)
+    iteration accepted this way is within `STALL_FACTOR` $c/(1 - c)$ tolerances of its
+    root; for the nhjax methods $c = O(h^3)$, see the module docstring.)
     """
 
     atol: float

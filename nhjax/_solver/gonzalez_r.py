@@ -1,17 +1,39 @@
 r"""GONZALEZ-R (§3.3): the Gonzalez discrete-gradient method on the reduced system,
 evaluated from $H$ and $A$ alone."""
 
-from typing import ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import Array
 
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
 from .._results import RESULTS
 from .base import AbstractMethod, increment_scale
+
+
+class _Carry(NamedTuple):
+    """What a step hands the next (`GonzalezR.initial_carry`)."""
+
+    zeta: Array
+    signs: Array
+    last_velocity: Array
+    earlier_velocity: Array
+
+
+class _StepData(NamedTuple):
+    """What the residual of one step needs (`GonzalezR.setup`)."""
+
+    reduced: ReducedSystem
+    zeta: Array
+    h: Any
+    scale: Array
+    args: Any
+    energy: Array
+    previous_velocity: Array
 
 
 class GonzalezR(AbstractMethod):
@@ -77,7 +99,7 @@ class GonzalezR(AbstractMethod):
         signs = lax.stop_gradient(system.frame_signs(q, args))
         zeta = system.to_reduced(y0, args, signs)
         unknown = jnp.full_like(zeta, jnp.nan)
-        return zeta, signs, unknown, unknown
+        return _Carry(zeta, signs, unknown, unknown)
 
     def setup(self, system: NonholonomicSystem, h, y0, args, carry):
         # A step starts from the previous step's zeta' itself, not from
@@ -86,10 +108,9 @@ class GonzalezR(AbstractMethod):
         # recomputed zeta is used where that does not apply: when the frame signs change
         # at q, and when y0 is not the state the previous step returned.
         q, _ = y0
-        carried_zeta, carried_signs, last_velocity, earlier_velocity = carry
         signs = lax.stop_gradient(system.frame_signs(q, args))
-        continues = jnp.all(signs == carried_signs) & jnp.all(carried_zeta[: q.shape[0]] == q)
-        zeta = jnp.where(continues, carried_zeta, system.to_reduced(y0, args, signs))
+        continues = jnp.all(signs == carry.signs) & jnp.all(carry.zeta[: q.shape[0]] == q)
+        zeta = jnp.where(continues, carry.zeta, system.to_reduced(y0, args, signs))
         reduced = self._reduced(system, signs, h)
         # The predictor: the mean velocity of the last step extrapolated linearly from
         # the two before, an O(h^2) error in the velocity, so the guess is O(h^3) from
@@ -97,21 +118,21 @@ class GonzalezR(AbstractMethod):
         # whose frame the carried rho-velocities mean something else) explicit Euler,
         # O(h^2). It saves the field evaluation of Euler and some iterations; the root
         # does not depend on it.
-        extrapolates = continues & jnp.all(jnp.isfinite(earlier_velocity))
+        extrapolates = continues & jnp.all(jnp.isfinite(carry.earlier_velocity))
         velocity = lax.cond(
             extrapolates,
-            lambda: 2 * last_velocity - earlier_velocity,
+            lambda: 2 * carry.last_velocity - carry.earlier_velocity,
             lambda: reduced.vf(zeta, args),
         )
         scale = increment_scale(zeta)
         guess = h * velocity / scale
-        previous = jnp.where(continues, last_velocity, jnp.nan)
-        return guess, (reduced, zeta, h, scale, args, reduced.hamiltonian(zeta, args), previous)
+        previous = jnp.where(continues, carry.last_velocity, jnp.nan)
+        return guess, _StepData(reduced, zeta, h, scale, args, reduced.hamiltonian(zeta, args), previous)
 
     def residual(self, u, data, correction: bool = True):
         """`correction=False`: the residual with the midpoint gradient alone, for the
         Jacobian approximation (see `nhjax._solver.chord`)."""
-        reduced, zeta, h, scale, args, energy, _ = data
+        reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         zeta1 = zeta + scale * u
         structure, gradient = reduced.structure_and_gradient(0.5 * (zeta + zeta1), args)
         if correction:
@@ -122,7 +143,7 @@ class GonzalezR(AbstractMethod):
                 zeta1,
                 args,
                 taylor=self.derivative == "autodiff",
-                f_x=energy,
+                f_x=data.energy,
             )
         return u - h * (structure @ gradient) / scale
 
@@ -149,7 +170,7 @@ class GonzalezR(AbstractMethod):
         steps 1.24x faster on the gearbox, 1.55x on the $n = 3$ quartic, 2.9x at
         $n = 10$). Derivatives of the root do not use this matrix (see
         `nhjax._solver.chord`)."""
-        reduced, zeta, h, scale, args, _, _ = data
+        reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         midpoint = zeta + 0.5 * scale * u
         q, rho = split_reduced(midpoint, reduced.signs)
 
@@ -167,8 +188,8 @@ class GonzalezR(AbstractMethod):
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
 
     def complete(self, u, data):
-        reduced, zeta, h, scale, args, _, previous_velocity = data
-        system, signs = reduced.system, reduced.signs
+        zeta, scale, args = data.zeta, data.scale, data.args
+        system, signs = data.reduced.system, data.reduced.signs
         zeta1 = zeta + scale * u
         y1 = system.from_reduced(zeta1, args, signs)
         q = zeta[: y1[0].shape[0]]
@@ -176,5 +197,5 @@ class GonzalezR(AbstractMethod):
             y1[0], args, signs
         )
         failure = RESULTS.where(full_rank, RESULTS.successful, RESULTS.constraints_rank_deficient)
-        velocity = lax.stop_gradient(scale * u / h)
-        return y1, failure, (zeta1, signs, velocity, lax.stop_gradient(previous_velocity))
+        velocity = lax.stop_gradient(scale * u / data.h)
+        return y1, failure, _Carry(zeta1, signs, velocity, lax.stop_gradient(data.previous_velocity))

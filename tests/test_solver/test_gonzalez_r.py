@@ -138,8 +138,8 @@ def test_predictor_is_third_order_once_two_steps_are_known():
     def guess_error_and_step(h, t0, y, state):
         guess, data = METHOD.setup(system, h, y, args, state.carry)
         y, _, _, state, result = METHOD.step(system, t0, t0 + h, y, args, state, False)
-        increment = state.carry[0] - data[1]
-        return jnp.max(jnp.abs(data[3] * guess - increment)), y, state, result
+        increment = state.carry.zeta - data.zeta
+        return jnp.max(jnp.abs(data.scale * guess - increment)), y, state, result
 
     first_errors, fourth_errors = [], []
     for h in STEP_SIZES:
