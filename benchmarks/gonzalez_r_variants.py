@@ -1,0 +1,91 @@
+"""GONZALEZ-R's step against variants of itself, timed in one process with the runs
+interleaved (A, B, C, A, B, C, ...) so that the machine's drift falls on all alike:
+
+- `GONZALEZ-R`: as shipped (chord matrix with its q columns by forward differences,
+  extrapolated predictor);
+- `Euler predictor`: explicit Euler guess at every step;
+- `jacfwd chord matrix`: the generic `jax.jacfwd` of the simplified residual for the
+  chord matrix (what the method used before it had its own).
+
+On the gearbox and the quartic with n = 3 and n = 10 at h = 0.1: median µs/step,
+root-finder iterations per step and compile time, and each variant's time as a ratio
+to the shipped method's.
+
+Run: python benchmarks/gonzalez_r_variants.py [--repeats 7]
+Results go to benchmarks/results/gonzalez_r_variants.json.
+"""
+
+import argparse
+import pathlib
+import statistics
+
+import jax
+import jax.numpy as jnp
+
+
+jax.config.update("jax_enable_x64", True)
+
+import nhjax as nh  # noqa: E402
+from _timing import timed, write  # noqa: E402
+from nhjax._solver.base import AbstractMethod  # noqa: E402
+
+
+class EulerPredictor(nh.GonzalezR):
+    """Hands the next step no velocities, so every step starts from explicit Euler."""
+
+    def complete(self, u, data):
+        y1, failure, carry = super().complete(u, data)
+        unknown = jnp.full_like(carry.last_velocity, jnp.nan)
+        return y1, failure, carry._replace(last_velocity=unknown, earlier_velocity=unknown)
+
+
+class JacfwdChordMatrix(nh.GonzalezR):
+    chord_jacobian = AbstractMethod.chord_jacobian
+
+
+VARIANTS = {"GONZALEZ-R": nh.GonzalezR(), "Euler predictor": EulerPredictor(), "jacfwd chord matrix": JacfwdChordMatrix()}
+
+
+def _problems():
+    gearbox = nh.examples.gearbox()
+    problems = {"gearbox": (gearbox.canonical, gearbox.random_initial_state(jax.random.key(0)), 5000)}
+    for n, steps in ((3, 1000), (10, 100)):
+        quartic = nh.examples.chaotic_quartic(n)
+        key_q, key_p = jax.random.split(jax.random.key(n))
+        q = 0.5 * jax.random.normal(key_q, (2 * n + 1,))
+        p = quartic.canonical.project_momentum(q, 0.5 * jax.random.normal(key_p, (2 * n + 1,)))
+        problems[f"quartic n = {n}"] = (quartic.canonical, (q, p), steps)
+    return problems
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gonzalez_r_variants.json"))
+    options = parser.parse_args()
+
+    results = {}
+    for problem, (system, y0, steps) in _problems().items():
+        runs, rows = {}, {}
+        for name, method in VARIANTS.items():
+            run = jax.jit(lambda y0, method=method: nh.integrate(system, method, y0, 0.1, steps, save_every=steps))
+            compile_s = timed(lambda y: run.lower(y).compile(), y0)
+            solution = run(y0)
+            runs[name] = run
+            rows[name] = dict(compile_s=compile_s, iterations_per_step=float(solution.stats["root_find_steps"]) / steps)
+        times = {name: [] for name in VARIANTS}
+        for _ in range(options.repeats):
+            for name, run in runs.items():
+                times[name].append(timed(run, y0))
+        for name, row in rows.items():
+            row["us_per_step"] = statistics.median(times[name]) / steps * 1e6
+        for name, row in rows.items():
+            row["time_ratio_to_shipped"] = row["us_per_step"] / rows["GONZALEZ-R"]["us_per_step"]
+            print(f"{problem:15s} {name:20s} {row['us_per_step']:9.1f} µs/step  x{row['time_ratio_to_shipped']:.2f}  "
+                  f"iterations {row['iterations_per_step']:.2f}  compile {row['compile_s']:.1f} s", flush=True)
+        results[problem] = dict(steps=steps, variants=rows)
+    write(dict(h=0.1, repeats=options.repeats, problems=results), options.out)
+
+
+if __name__ == "__main__":
+    main()
