@@ -17,6 +17,25 @@ def timed(function, *arguments) -> float:
     return time.perf_counter() - start
 
 
+def median_seconds(function, *arguments, repeats: int) -> float:
+    """Median seconds over `repeats` timed calls of `function(*arguments)`, after one
+    untimed warm-up call."""
+    jax.block_until_ready(function(*arguments))
+    return statistics.median(timed(function, *arguments) for _ in range(repeats))
+
+
+def interleaved_median_seconds(functions: dict, *arguments, repeats: int) -> dict:
+    """{name: median seconds} of each function on `arguments`, warmed up once and then timed
+    in turn (A, B, C, A, B, C, ...) so that the machine's drift falls on all alike."""
+    for function in functions.values():
+        jax.block_until_ready(function(*arguments))
+    times = {name: [] for name in functions}
+    for _ in range(repeats):
+        for name, function in functions.items():
+            times[name].append(timed(function, *arguments))
+    return {name: statistics.median(seconds) for name, seconds in times.items()}
+
+
 def machine() -> dict:
     return dict(processor=platform.processor(), cpus=jax.local_device_count(), backend=jax.default_backend())
 
@@ -36,11 +55,10 @@ def per_step(system, method, y0, steps, repeats, args=None, dt=0.1):
     run = jax.jit(lambda y0: nh.integrate(system, method, y0, dt, steps, args=args, save_every=steps))
     compile_s = timed(lambda y: run.lower(y).compile(), y0)
     solution = run(y0)
-    jax.block_until_ready(solution)
-    times = [timed(run, y0) for _ in range(repeats)]
+    seconds = median_seconds(run, y0, repeats=repeats)
     total = solution.stats["root_find_steps"]
     iterations = None if total is None else float(total) / steps
-    return statistics.median(times) / steps * 1e6, compile_s, iterations
+    return seconds / steps * 1e6, compile_s, iterations
 
 
 def batch_rate(system, method, states, steps, repeats, args=None, dt=0.1):
@@ -55,4 +73,4 @@ def batch_rate(system, method, states, steps, repeats, args=None, dt=0.1):
     results = run(states)
     failed = int(jax.numpy.sum(results != nh.RESULTS.successful))
     size = jax.tree.leaves(states)[0].shape[0]
-    return size * steps / statistics.median([timed(run, states) for _ in range(repeats)]), failed
+    return size * steps / median_seconds(run, states, repeats=repeats), failed

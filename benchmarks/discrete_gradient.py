@@ -7,7 +7,6 @@ Figures are medians over repeats; results go to benchmarks/results/discrete_grad
 
 import argparse
 import pathlib
-import statistics
 
 import jax
 
@@ -16,7 +15,7 @@ jax.config.update("jax_enable_x64", True)
 
 
 import nhjax as nh  # noqa: E402
-from _timing import timed, write  # noqa: E402
+from _timing import median_seconds, timed, write  # noqa: E402
 
 
 def main():
@@ -41,13 +40,8 @@ def main():
 
     compile_single = timed(lambda x: single.lower(x).compile(), x0)
     compile_batch = timed(lambda x: batch.lower(x).compile(), states)
-    timed(single, x0)
-    timed(batch, states)
-    single_times = [timed(single, x0) for _ in range(options.repeats)]
-    batch_times = [timed(batch, states) for _ in range(options.repeats)]
-
-    us_per_step = statistics.median(single_times) / options.steps * 1e6
-    batch_rate = options.batch * options.batch_steps / statistics.median(batch_times)
+    us_per_step = median_seconds(single, x0, repeats=options.repeats) / options.steps * 1e6
+    batch_rate = options.batch * options.batch_steps / median_seconds(batch, states, repeats=options.repeats)
     iterations = nh.integrate(quartic.adapted, method, x0, h, options.steps, save_every=options.steps).stats
     results = dict(
         system="chaotic quartic, adapted (n = 3, N = 13)",

@@ -12,7 +12,6 @@ Figures are medians over repeats; results go to benchmarks/results/gonzalez_r.js
 
 import argparse
 import pathlib
-import statistics
 
 import jax
 
@@ -20,7 +19,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import per_step, timed, write  # noqa: E402
+from _timing import median_seconds, per_step, timed, write  # noqa: E402
 
 
 def main():
@@ -50,8 +49,7 @@ def main():
     )
     long_run = long_run.lower(y0).compile()
     long_solution = long_run(y0)
-    jax.block_until_ready(long_solution)
-    long_times = [timed(long_run, y0) for _ in range(max(1, options.repeats // 2))]
+    long_seconds = median_seconds(long_run, y0, repeats=max(1, options.repeats // 2))
     long_energy = float(abs(long_solution.energy / long_solution.energy[0] - 1).max())
     long_constraint = float(abs(long_solution.constraint).max())
 
@@ -60,9 +58,7 @@ def main():
         lambda y0: nh.integrate(gearbox.canonical, method, y0, 0.1, options.batch_steps, save_every=options.batch_steps).ys
     ))
     batch_compile_s = timed(lambda y: batch.lower(y).compile(), states)
-    timed(batch, states)
-    batch_times = [timed(batch, states) for _ in range(options.repeats)]
-    batch_rate = options.batch * options.batch_steps / statistics.median(batch_times)
+    batch_rate = options.batch * options.batch_steps / median_seconds(batch, states, repeats=options.repeats)
 
     quartic = nh.examples.chaotic_quartic(3)
     x0 = quartic.initial_state(0.7)
@@ -87,7 +83,7 @@ def main():
                 us_per_step=direct_us, compile_s=direct_compile_s, root_find_iterations_per_step=direct_iterations
             ),
             full_run=dict(
-                steps=options.long_steps, seconds=statistics.median(long_times), target_seconds=10.0,
+                steps=options.long_steps, seconds=long_seconds, target_seconds=10.0,
                 max_relative_energy_error=long_energy, max_constraint_error=long_constraint,
             ),
             batch=dict(
@@ -108,7 +104,7 @@ def main():
     print(f"   central differences  : {finite_us:8.2f} µs/step")
     print(f"gearbox GONZALEZ-F      : {direct_us:8.2f} µs/step")
     print(f"compile GONZALEZ-R      : {compile_s:8.2f} s  (target <= 15)")
-    print(f"full run, {options.long_steps} steps: {statistics.median(long_times):8.2f} s  (target < 10); "
+    print(f"full run, {options.long_steps} steps: {long_seconds:8.2f} s  (target < 10); "
           f"energy {long_energy:.1e}, constraint {long_constraint:.1e}")
     print(f"batch of {options.batch}           : {batch_rate:10.3e} trajectory-steps/s  (target >= 5e5)")
     print(f"quartic n = 3           : GONZALEZ-R {quartic_r_us:.2f} µs/step, reduced DiscreteGradient "

@@ -17,7 +17,6 @@ Results go to benchmarks/results/gonzalez_r_variants.json.
 
 import argparse
 import pathlib
-import statistics
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +25,7 @@ import jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import timed, write  # noqa: E402
+from _timing import interleaved_median_seconds, timed, write  # noqa: E402
 from nhjax._solver.base import AbstractMethod  # noqa: E402
 
 
@@ -73,12 +72,9 @@ def main():
             solution = run(y0)
             runs[name] = run
             rows[name] = dict(compile_s=compile_s, iterations_per_step=float(solution.stats["root_find_steps"]) / steps)
-        times = {name: [] for name in VARIANTS}
-        for _ in range(options.repeats):
-            for name, run in runs.items():
-                times[name].append(timed(run, y0))
+        seconds = interleaved_median_seconds(runs, y0, repeats=options.repeats)
         for name, row in rows.items():
-            row["us_per_step"] = statistics.median(times[name]) / steps * 1e6
+            row["us_per_step"] = seconds[name] / steps * 1e6
         for name, row in rows.items():
             row["time_ratio_to_shipped"] = row["us_per_step"] / rows["GONZALEZ-R"]["us_per_step"]
             print(f"{problem:15s} {name:20s} {row['us_per_step']:9.1f} µs/step  x{row['time_ratio_to_shipped']:.2f}  "

@@ -17,7 +17,6 @@ import argparse
 import json
 import pathlib
 import resource
-import statistics
 import subprocess
 import sys
 
@@ -34,7 +33,7 @@ def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dic
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
-    from _timing import timed
+    from _timing import median_seconds, timed
 
     gearbox = nh.examples.gearbox()
     y0 = gearbox.random_initial_state(jax.random.key(0))
@@ -51,11 +50,10 @@ def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dic
     compile_s = timed(lambda y: function.lower(y).compile(), y0)
     compiled_peak = _peak_mib()
     value = function(y0)
-    jax.block_until_ready(value)
-    times = [timed(function, y0) for _ in range(repeats)]
+    seconds = median_seconds(function, y0, repeats=repeats)
     finite = all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(value))
     return dict(
-        seconds=statistics.median(times),
+        seconds=seconds,
         compile_s=compile_s,
         peak_after_compile_mib=compiled_peak,
         peak_mib=_peak_mib(),

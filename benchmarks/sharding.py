@@ -13,7 +13,6 @@ Prints one JSON line; the suite (benchmarks/suite.py) stores it.
 import argparse
 import json
 import os
-import statistics
 
 
 def main():
@@ -35,7 +34,7 @@ def main():
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
-    from _timing import timed
+    from _timing import median_seconds
 
     devices = jax.devices()[: options.devices]
     gearbox = nh.examples.gearbox()
@@ -49,7 +48,7 @@ def main():
     seconds, finals = {}, {}
     for label, on in (("one_device", devices[:1]), ("all_devices", devices)):
         finals[label] = run(on).ys
-        seconds[label] = statistics.median([timed(run, on) for _ in range(options.repeats)])
+        seconds[label] = median_seconds(run, on, repeats=options.repeats)
     difference = max(
         float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
         for a, b in zip(jax.tree.leaves(finals["one_device"]), jax.tree.leaves(finals["all_devices"]))

@@ -43,7 +43,7 @@ jax.config.update("jax_enable_x64", True)
 import nhjax as nh  # noqa: E402
 import peers  # noqa: E402
 from _profile import step_parts  # noqa: E402
-from _timing import batch_rate, per_step, timed, write  # noqa: E402
+from _timing import batch_rate, median_seconds, per_step, write  # noqa: E402
 
 
 H = 0.1
@@ -81,11 +81,6 @@ def _problems(batch):
             adapted=(quartic.adapted, quartic.initial_state(0.7), quartic.random_initial_states(jax.random.key(1), batch)),
         ),
     }
-
-
-def _median_seconds(function, repeats):
-    function()
-    return statistics.median([timed(function) for _ in range(repeats)])
 
 
 def _drift(solution):
@@ -127,7 +122,7 @@ def long_runs(problem, options):
     for name, method in NHJAX_METHODS.items():
         run = jax.jit(lambda y, method=method: nh.integrate(system, method, y, H, steps, save_every=steps // 1000 or 1))
         solution = run(y0)
-        seconds = _median_seconds(lambda: run(y0), options.repeats)
+        seconds = median_seconds(run, y0, repeats=options.repeats)
         rows[name] = dict(seconds=seconds, seconds_per_unit_time=seconds / t1, **_drift(solution))
 
     short = options.numpy_steps
@@ -174,7 +169,7 @@ def _adaptive(system, y0, t1, solver, tolerance, repeats):
                                      save_at=save_at, max_steps=10_000_000)
 
     solution = run(y0)
-    return solution, _median_seconds(lambda: run(y0), repeats)
+    return solution, median_seconds(run, y0, repeats=repeats)
 
 
 def equal_wall_time(problem, gonzalez_r_seconds, options):
