@@ -6,6 +6,7 @@ import pathlib
 import platform
 import statistics
 import time
+from typing import Any
 
 import jax
 
@@ -17,23 +18,23 @@ def timed(function, *arguments) -> float:
     return time.perf_counter() - start
 
 
-def median_seconds(function, *arguments, repeats: int) -> float:
-    """Median seconds over `repeats` timed calls of `function(*arguments)`, after one
-    untimed warm-up call."""
-    jax.block_until_ready(function(*arguments))
-    return statistics.median(timed(function, *arguments) for _ in range(repeats))
+def run_and_time(function, *arguments, repeats: int) -> tuple[Any, float]:
+    """The output of a first, untimed call of `function(*arguments)`, which also warms
+    it up, and the median seconds of `repeats` timed calls after it."""
+    output = jax.block_until_ready(function(*arguments))
+    return output, statistics.median(timed(function, *arguments) for _ in range(repeats))
 
 
-def interleaved_median_seconds(functions: dict, *arguments, repeats: int) -> dict:
-    """{name: median seconds} of each function on `arguments`, warmed up once and then timed
-    in turn (A, B, C, A, B, C, ...) so that the machine's drift falls on all alike."""
-    for function in functions.values():
-        jax.block_until_ready(function(*arguments))
+def run_and_time_interleaved(functions: dict, *arguments, repeats: int) -> tuple[dict, dict]:
+    """`run_and_time` for several functions on the same `arguments`, the timed calls
+    taken in turn (A, B, C, A, B, C, ...) so that the machine's drift falls on all
+    alike: ({name: output}, {name: median seconds})."""
+    outputs = {name: jax.block_until_ready(function(*arguments)) for name, function in functions.items()}
     times = {name: [] for name in functions}
     for _ in range(repeats):
         for name, function in functions.items():
             times[name].append(timed(function, *arguments))
-    return {name: statistics.median(seconds) for name, seconds in times.items()}
+    return outputs, {name: statistics.median(seconds) for name, seconds in times.items()}
 
 
 def machine() -> dict:
@@ -54,8 +55,7 @@ def per_step(system, method, y0, steps, repeats, args=None, dt=0.1):
 
     run = jax.jit(lambda y0: nh.integrate(system, method, y0, dt, steps, args=args, save_every=steps))
     compile_s = timed(lambda y: run.lower(y).compile(), y0)
-    solution = run(y0)
-    seconds = median_seconds(run, y0, repeats=repeats)
+    solution, seconds = run_and_time(run, y0, repeats=repeats)
     total = solution.stats["root_find_steps"]
     iterations = None if total is None else float(total) / steps
     return seconds / steps * 1e6, compile_s, iterations
@@ -70,7 +70,7 @@ def batch_rate(system, method, states, steps, repeats, args=None, dt=0.1):
     run = jax.jit(jax.vmap(
         lambda y0: nh.integrate(system, method, y0, dt, steps, args=args, save_every=steps, throw=False).result
     ))
-    results = run(states)
+    results, seconds = run_and_time(run, states, repeats=repeats)
     failed = int(jax.numpy.sum(results != nh.RESULTS.successful))
     size = jax.tree.leaves(states)[0].shape[0]
-    return size * steps / median_seconds(run, states, repeats=repeats), failed
+    return size * steps / seconds, failed

@@ -15,7 +15,7 @@ jax.config.update("jax_enable_x64", True)
 
 
 import nhjax as nh  # noqa: E402
-from _timing import median_seconds, timed, write  # noqa: E402
+from _timing import run_and_time, timed, write  # noqa: E402
 
 
 def main():
@@ -40,8 +40,10 @@ def main():
 
     compile_single = timed(lambda x: single.lower(x).compile(), x0)
     compile_batch = timed(lambda x: batch.lower(x).compile(), states)
-    us_per_step = median_seconds(single, x0, repeats=options.repeats) / options.steps * 1e6
-    batch_rate = options.batch * options.batch_steps / median_seconds(batch, states, repeats=options.repeats)
+    _, single_seconds = run_and_time(single, x0, repeats=options.repeats)
+    _, batch_seconds = run_and_time(batch, states, repeats=options.repeats)
+    us_per_step = single_seconds / options.steps * 1e6
+    batch_rate = options.batch * options.batch_steps / batch_seconds
     iterations = nh.integrate(quartic.adapted, method, x0, h, options.steps, save_every=options.steps).stats
     results = dict(
         system="chaotic quartic, adapted (n = 3, N = 13)",

@@ -19,7 +19,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import median_seconds, per_step, timed, write  # noqa: E402
+from _timing import per_step, run_and_time, timed, write  # noqa: E402
 
 
 def main():
@@ -48,8 +48,7 @@ def main():
         lambda y0: nh.integrate(gearbox.canonical, method, y0, 0.1, options.long_steps, save_every=1000)
     )
     long_run = long_run.lower(y0).compile()
-    long_solution = long_run(y0)
-    long_seconds = median_seconds(long_run, y0, repeats=max(1, options.repeats // 2))
+    long_solution, long_seconds = run_and_time(long_run, y0, repeats=max(1, options.repeats // 2))
     long_energy = float(abs(long_solution.energy / long_solution.energy[0] - 1).max())
     long_constraint = float(abs(long_solution.constraint).max())
 
@@ -58,7 +57,8 @@ def main():
         lambda y0: nh.integrate(gearbox.canonical, method, y0, 0.1, options.batch_steps, save_every=options.batch_steps).ys
     ))
     batch_compile_s = timed(lambda y: batch.lower(y).compile(), states)
-    batch_rate = options.batch * options.batch_steps / median_seconds(batch, states, repeats=options.repeats)
+    _, batch_seconds = run_and_time(batch, states, repeats=options.repeats)
+    batch_rate = options.batch * options.batch_steps / batch_seconds
 
     quartic = nh.examples.chaotic_quartic(3)
     x0 = quartic.initial_state(0.7)

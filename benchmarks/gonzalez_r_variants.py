@@ -25,7 +25,7 @@ import jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import interleaved_median_seconds, timed, write  # noqa: E402
+from _timing import run_and_time_interleaved, timed, write  # noqa: E402
 from nhjax._solver.base import AbstractMethod  # noqa: E402
 
 
@@ -65,16 +65,19 @@ def main():
 
     results = {}
     for problem, (system, y0, steps) in _problems().items():
-        runs, rows = {}, {}
+        runs, compile_s = {}, {}
         for name, method in VARIANTS.items():
-            run = jax.jit(lambda y0, method=method: nh.integrate(system, method, y0, 0.1, steps, save_every=steps))
-            compile_s = timed(lambda y: run.lower(y).compile(), y0)
-            solution = run(y0)
-            runs[name] = run
-            rows[name] = dict(compile_s=compile_s, iterations_per_step=float(solution.stats["root_find_steps"]) / steps)
-        seconds = interleaved_median_seconds(runs, y0, repeats=options.repeats)
-        for name, row in rows.items():
-            row["us_per_step"] = seconds[name] / steps * 1e6
+            runs[name] = jax.jit(lambda y0, method=method: nh.integrate(system, method, y0, 0.1, steps, save_every=steps))
+            compile_s[name] = timed(lambda y: runs[name].lower(y).compile(), y0)
+        solutions, seconds = run_and_time_interleaved(runs, y0, repeats=options.repeats)
+        rows = {
+            name: dict(
+                compile_s=compile_s[name],
+                iterations_per_step=float(solutions[name].stats["root_find_steps"]) / steps,
+                us_per_step=seconds[name] / steps * 1e6,
+            )
+            for name in VARIANTS
+        }
         for name, row in rows.items():
             row["time_ratio_to_shipped"] = row["us_per_step"] / rows["GONZALEZ-R"]["us_per_step"]
             print(f"{problem:15s} {name:20s} {row['us_per_step']:9.1f} µs/step  x{row['time_ratio_to_shipped']:.2f}  "

@@ -33,7 +33,7 @@ def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dic
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
-    from _timing import median_seconds, timed
+    from _timing import run_and_time, timed
 
     gearbox = nh.examples.gearbox()
     y0 = gearbox.random_initial_state(jax.random.key(0))
@@ -49,8 +49,7 @@ def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dic
     function = jax.jit(loss if mode == "forward" else jax.grad(loss))
     compile_s = timed(lambda y: function.lower(y).compile(), y0)
     compiled_peak = _peak_mib()
-    value = function(y0)
-    seconds = median_seconds(function, y0, repeats=repeats)
+    value, seconds = run_and_time(function, y0, repeats=repeats)
     finite = all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(value))
     return dict(
         seconds=seconds,

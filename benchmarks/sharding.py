@@ -34,7 +34,7 @@ def main():
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
-    from _timing import median_seconds
+    from _timing import run_and_time
 
     devices = jax.devices()[: options.devices]
     gearbox = nh.examples.gearbox()
@@ -47,8 +47,8 @@ def main():
 
     seconds, finals = {}, {}
     for label, on in (("one_device", devices[:1]), ("all_devices", devices)):
-        finals[label] = run(on).ys
-        seconds[label] = median_seconds(run, on, repeats=options.repeats)
+        solution, seconds[label] = run_and_time(run, on, repeats=options.repeats)
+        finals[label] = solution.ys
     difference = max(
         float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
         for a, b in zip(jax.tree.leaves(finals["one_device"]), jax.tree.leaves(finals["all_devices"]))

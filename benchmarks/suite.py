@@ -43,7 +43,7 @@ jax.config.update("jax_enable_x64", True)
 import nhjax as nh  # noqa: E402
 import peers  # noqa: E402
 from _profile import step_parts  # noqa: E402
-from _timing import batch_rate, median_seconds, per_step, write  # noqa: E402
+from _timing import batch_rate, per_step, run_and_time, write  # noqa: E402
 
 
 H = 0.1
@@ -121,8 +121,7 @@ def long_runs(problem, options):
     rows = {}
     for name, method in NHJAX_METHODS.items():
         run = jax.jit(lambda y, method=method: nh.integrate(system, method, y, H, steps, save_every=steps // 1000 or 1))
-        solution = run(y0)
-        seconds = median_seconds(run, y0, repeats=options.repeats)
+        solution, seconds = run_and_time(run, y0, repeats=options.repeats)
         rows[name] = dict(seconds=seconds, seconds_per_unit_time=seconds / t1, **_drift(solution))
 
     short = options.numpy_steps
@@ -168,8 +167,7 @@ def _adaptive(system, y0, t1, solver, tolerance, repeats):
         return nh.integrate_adaptive(system, y0, t1, solver=solver, rtol=tolerance, atol=tolerance,
                                      save_at=save_at, max_steps=10_000_000)
 
-    solution = run(y0)
-    return solution, median_seconds(run, y0, repeats=repeats)
+    return run_and_time(run, y0, repeats=repeats)
 
 
 def equal_wall_time(problem, gonzalez_r_seconds, options):
