@@ -33,9 +33,9 @@ class EulerPredictor(nh.GonzalezR):
     """Hands the next step no velocities, so every step starts from explicit Euler."""
 
     def complete(self, u, data):
-        y1, failure, carry = super().complete(u, data)
+        y1, carry = super().complete(u, data)
         unknown = jnp.full_like(carry.last_velocity, jnp.nan)
-        return y1, failure, carry._replace(last_velocity=unknown, earlier_velocity=unknown)
+        return y1, carry._replace(last_velocity=unknown, earlier_velocity=unknown)
 
 
 class JacfwdChordMatrix(nh.GonzalezR):

@@ -11,7 +11,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
-from ._integrate import _trace_floats, check_step_counts, check_step_size, integrate, Solution
+from ._integrate import _trace_floats, check_args, check_step_counts, check_step_size, integrate, Solution
 from ._results import RESULTS
 from ._system import AbstractSystem
 
@@ -59,7 +59,8 @@ def integrate_ensemble(
     their shares independently).
     """
     check_step_counts(n_steps, save_every)
-    check_step_size(dt)
+    check_step_size(dt, t0)
+    check_args(args)
     leaves = jax.tree.leaves(y0s)
     if not leaves or any(jnp.ndim(leaf) < 1 for leaf in leaves):
         raise ValueError("y0s must hold a batch of states: every leaf needs a leading batch axis.")

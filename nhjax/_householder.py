@@ -24,11 +24,11 @@ from ._linalg import safe_norm
 
 
 def _reflectors(a_t, signs):
-    """The unit Householder vectors (as rows, zero above their pivot), R's diagonal
-    magnitudes |x_j|, and the signs used."""
+    r"""The unit Householder vectors (as rows, zero above their pivot), R, the pivots
+    $|\tilde w_j|/\sqrt2$, R's diagonal magnitudes |x_j|, and the signs used."""
     n, k = a_t.shape
     r = a_t
-    vectors, pivots, used = [], [], []
+    vectors, pivots, norms, used = [], [], [], []
     for j in range(k):
         x = r[j:, j]
         # Finite derivatives at x = 0, where the factorisation breaks down and the caller
@@ -41,14 +41,26 @@ def _reflectors(a_t, signs):
         r = r.at[j:, :].add(-2 * jnp.outer(w, w @ r[j:, :]))
         vectors.append(jnp.concatenate([jnp.zeros((j,), a_t.dtype), w]))
         pivots.append(jnp.sqrt(jnp.maximum(length_sq, 0.0) / 2))
+        norms.append(norm)
         used.append(sign)
-    return vectors, r, jnp.stack(pivots), jnp.stack(used)
+    return vectors, r, jnp.stack(pivots), jnp.stack(norms), jnp.stack(used)
+
+
+def householder_pivots(
+    a_t: Float[Array, "n k"], signs: Float[Array, " k"] | None = None
+) -> tuple[Float[Array, " k"], Float[Array, " k"]]:
+    r"""The pivots $|\tilde w_j|/\sqrt2 = (|x_j|^2 + s_jx_{j,1}|x_j|)^{1/2}$ of the
+    factorisation with sign choices `signs` (`None`: the stable ones), and
+    $|x_j| = |R_{jj}|$, the distance of column $j$ from the span of the columns before
+    it, which does not depend on the signs; the frame is not formed."""
+    _, _, pivots, norms, _ = _reflectors(a_t, signs)
+    return pivots, norms
 
 
 def householder_signs(a_t: Float[Array, "n k"]) -> Float[Array, " k"]:
     """The stable sign choices $s_j = \\mathrm{sign}(x_1)$ for the factorisation of
     `a_t` ($+1$ where $x_1 = 0$)."""
-    return _reflectors(a_t, None)[3]
+    return _reflectors(a_t, None)[4]
 
 
 def householder_qr(
@@ -56,7 +68,7 @@ def householder_qr(
 ) -> tuple[Float[Array, "n n"], Float[Array, "n k"]]:
     """$A^T = QR$ with $Q = H_1 \\cdots H_k$ orthogonal and $R$ upper triangular,
     $R_{jj} = -s_j|x_j|$. `signs=None` uses `householder_signs(a_t)`."""
-    vectors, r, _, _ = _reflectors(a_t, signs)
+    vectors, r, _, _, _ = _reflectors(a_t, signs)
     q = jnp.eye(a_t.shape[0], dtype=a_t.dtype)
     for w in reversed(vectors):
         q = q - 2 * jnp.outer(w, w @ q)
@@ -74,7 +86,7 @@ def householder_frame(
     Only the last $m$ columns are formed: $X = H_1 \cdots H_k [0; I_m]$.
     """
     n, k = a_t.shape
-    vectors, _, pivots, _ = _reflectors(a_t, signs)
+    vectors, _, pivots, _, _ = _reflectors(a_t, signs)
     frame = jnp.eye(n, n - k, -k, dtype=a_t.dtype)
     for w in reversed(vectors):
         frame = frame - 2 * jnp.outer(w, w @ frame)

@@ -2,16 +2,19 @@
 method (`integrate`), and adaptive steps of a standard diffrax solver on the system's own
 vector field (`integrate_adaptive`), the non-geometric baseline and the tests' reference."""
 
+import math
 import numbers
+from collections.abc import Callable
 from typing import Any
 
 import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, PyTree
+import numpy as np
+from jaxtyping import Array, Bool, Float, PyTree
 
-from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
+from ._results import first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, RESULTS
 from ._system import AbstractSystem
 
 
@@ -27,7 +30,9 @@ class Solution(eqx.Module):
         with constraints; otherwise `None`.
     - `result`: an `nhjax.RESULTS` code; `nhjax.RESULTS[sol.result]` is its message.
         With `throw=False` a failed trajectory keeps its saves up to the failure and
-        holds non-finite values after it.
+        holds NaN from the first save after it on (a save whose state, energy or
+        constraint residual is not finite is a failure), and every output of a failed
+        trajectory has NaN derivatives.
     - `stats`: `num_steps` (steps taken), `root_find_steps` (root-finder iterations in
         all), `max_root_find_steps` (most iterations in one step).
     """
@@ -48,12 +53,17 @@ def _trace_floats(args: PyTree) -> PyTree:
     )
 
 
+def _is_int(value) -> bool:
+    """An integer, not a bool (`True` is an `Integral` but no step count)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def check_step_counts(n_steps, save_every) -> None:
     """`ValueError` unless `n_steps` and `save_every` are positive ints and `save_every`
     divides `n_steps` (so that the final state is saved)."""
-    if not isinstance(n_steps, numbers.Integral) or n_steps < 1:
+    if not _is_int(n_steps) or n_steps < 1:
         raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
-    if not isinstance(save_every, numbers.Integral) or save_every < 1:
+    if not _is_int(save_every) or save_every < 1:
         raise ValueError(f"save_every must be a positive int, got {save_every!r}.")
     if n_steps % save_every != 0:
         raise ValueError(
@@ -62,13 +72,41 @@ def check_step_counts(n_steps, save_every) -> None:
         )
 
 
-def check_step_size(dt) -> None:
-    """`ValueError` unless `dt` is a scalar, and positive where it is concrete (a traced
-    `dt <= 0` is reported at run time)."""
-    if jnp.ndim(dt) != 0:
-        raise ValueError(f"dt must be a scalar, got shape {jnp.shape(dt)}.")
-    if not isinstance(dt, jax.core.Tracer) and not dt > 0:
-        raise ValueError(f"dt must be positive, got dt={dt}.")
+def check_step_size(dt, t0=0.0) -> None:
+    """`ValueError` unless `dt` and `t0` are scalars, `dt` positive and finite and `t0`
+    finite where they are concrete (traced ones are checked at run time, with the
+    codes `invalid_dt` and `invalid_t0`)."""
+    for name, value in (("dt", dt), ("t0", t0)):
+        if jnp.ndim(value) != 0:
+            raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(value)}.")
+    if not isinstance(dt, jax.core.Tracer) and not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be positive and finite, got dt={dt}.")
+    if not isinstance(t0, jax.core.Tracer) and not math.isfinite(t0):
+        raise ValueError(f"t0 must be finite, got t0={t0}.")
+
+
+def _inexact_leaves_with_paths(tree):
+    return [
+        (jax.tree_util.keystr(path), leaf)
+        for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]
+        if isinstance(leaf, (float, complex))
+        or (hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.inexact))
+    ]
+
+
+def check_args(args) -> None:
+    """`ValueError` naming the first concrete floating-point leaf of `args` that holds
+    NaN or inf (traced leaves are checked at run time, code `nonfinite_args`)."""
+    for path, leaf in _inexact_leaves_with_paths(args):
+        if not isinstance(leaf, jax.core.Tracer) and not bool(np.all(np.isfinite(leaf))):
+            raise ValueError(f"args{path} is not finite: {leaf}.")
+
+
+def args_result(args) -> RESULTS:
+    """`nonfinite_args` if a floating-point leaf of `args` holds NaN or inf."""
+    leaves = [leaf for _, leaf in _inexact_leaves_with_paths(args)]
+    finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(leaf)) for leaf in leaves], dtype=bool))
+    return RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_args)
 
 
 def _save_observables(system):
@@ -81,13 +119,27 @@ def _save_observables(system):
     return save
 
 
-def _assemble(ts, saved, result: RESULTS, stats, throw: bool) -> Solution:
-    """The `Solution` from diffrax's saves, with a non-finite save reported after any
-    earlier failure, and raised if `throw`."""
+def _assemble(ts, saved, result: RESULTS, stats, sources) -> Solution:
+    """The `Solution` from diffrax's saves.
+
+    A save whose state or observables (energy, constraint residual) are not finite is a
+    failure (`nonfinite_step`, after any earlier failure): nhjax's methods report a
+    non-finite step themselves, but a diffrax solver at fixed steps does not, and its
+    states can stay finite while the energy overflows. From the first such save on,
+    every save is NaN. A failed trajectory's outputs have NaN derivatives with respect
+    to everything it was computed from (`sources`: y0, dt, t0, args)."""
     ys, observed = saved
-    result = first_failure(result, _finite_result(ys))
-    if throw:
-        ys = result.error_if(ys, result != RESULTS.successful)
+    bad = _nonfinite_saves((ys, observed))
+    result = first_failure(
+        result, RESULTS.where(jnp.any(bad), RESULTS.nonfinite_step, RESULTS.successful)
+    )
+    after_bad = jnp.cumsum(bad) > 0
+    ys, observed = jax.tree.map(
+        lambda x: jnp.where(after_bad.reshape(-1, *(1,) * (x.ndim - 1)), jnp.nan, x),
+        (ys, observed),
+    )
+    failed = result != RESULTS.successful
+    ts, ys, observed = nan_derivatives_where(failed, (ts, ys, observed), sources)
     return Solution(
         ts=ts,
         ys=ys,
@@ -98,12 +150,14 @@ def _assemble(ts, saved, result: RESULTS, stats, throw: bool) -> Solution:
     )
 
 
-def _finite_result(ys: PyTree) -> RESULTS:
-    """`nonfinite_step` if a saved state is not finite. nhjax's methods report such a
-    step themselves, but a diffrax solver at fixed steps does not, and a NaN state
-    persists to the final save, which is always saved."""
-    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(ys)]))
-    return RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_step)
+def _nonfinite_saves(saved: PyTree) -> Bool[Array, " n_saved"]:
+    """Per save, whether any leaf of `saved` (each with a leading save axis) is not
+    finite."""
+    flags = [
+        jnp.any(~jnp.isfinite(leaf.reshape(leaf.shape[0], -1)), axis=1)
+        for leaf in jax.tree.leaves(saved)
+    ]
+    return jnp.any(jnp.stack(flags), axis=0)
 
 
 def _adjoint_or_default(adjoint: diffrax.AbstractAdjoint | None) -> diffrax.AbstractAdjoint:
@@ -148,8 +202,10 @@ def integrate(
     Reverse mode (`jax.grad`, `jax.jacrev`) uses the default `adjoint`,
     `diffrax.RecursiveCheckpointAdjoint()`: memory O(log n_steps) states plus the
     saves, time O(n log n). Forward mode (`jax.jvp`, `jax.jacfwd`) needs
-    `adjoint=diffrax.ForwardMode()`. A failed trajectory's outputs have NaN
-    derivatives.
+    `adjoint=diffrax.ForwardMode()`. A failed trajectory's outputs, the saves before
+    the failure included, have NaN derivatives with respect to all of `y0`, `args`,
+    `dt` and `t0`, never finite-looking wrong ones; under `vmap` its neighbours keep
+    theirs.
 
     **Arguments:**
 
@@ -170,46 +226,90 @@ def integrate(
     - `adjoint`: how derivatives pass through the time loop (see above); `None` for
         `diffrax.RecursiveCheckpointAdjoint()`.
 
-    **Errors.** Wrong shapes, a non-integer `n_steps` and a concrete `dt <= 0` raise a
-    `ValueError` at once. A non-finite initial state, a structure that is not skew, a
-    traced `dt <= 0`, and steps that fail (root find not converged, singular Jacobian,
-    non-finite state) raise at run time with the message of their `nhjax.RESULTS` code,
-    or with `throw=False` set that code.
+    **Errors.** Wrong shapes, a non-integer `n_steps`, and a concrete `dt` that is not
+    positive and finite, `t0` or `args` leaf that is not finite raise a `ValueError` at
+    once. Everything else is a `nhjax.RESULTS` code (the README lists them): with
+    `throw=False` it is set per trajectory; with `throw=True` a concrete call raises a
+    `RuntimeError` with its message and the step and time of the failure, and a traced
+    one (under `jit`, `vmap`, `grad`) a runtime error with its message.
     """
     check_step_counts(n_steps, save_every)
-    check_step_size(dt)
+    check_step_size(dt, t0)
+    check_args(args)
     system.check_shapes(y0, args)
     dtype = _state_dtype(y0)
-    return _integrate(
+    dt, t0 = jnp.asarray(dt, dtype=dtype), jnp.asarray(t0, dtype=dtype)
+    solution = _integrate(
         system,
         method,
         y0,
-        jnp.asarray(dt, dtype=dtype),
-        jnp.asarray(t0, dtype=dtype),
+        dt,
+        t0,
         _trace_floats(args),
         jnp.asarray(check_constraint, dtype=bool),
         _adjoint_or_default(adjoint),
         n_steps=int(n_steps),
         save_every=int(save_every),
         progress=bool(progress),
-        throw=bool(throw),
+    )
+    if throw:
+        solution = raise_failure(solution, lambda: _describe_failure(solution, dt, t0, n_steps))
+    return solution
+
+
+def raise_failure(solution: Solution, describe: Callable[[], str]) -> Solution:
+    """`solution`, after raising on failure: on the host, a `RuntimeError` with
+    `describe()` (which may read `solution`'s concrete values), when the result is
+    concrete; otherwise a runtime error in the traced program, with the code's
+    message."""
+    codes = jax.tree.leaves(solution.result)[0]
+    if isinstance(codes, jax.core.Tracer):
+        failed = solution.result != RESULTS.successful
+        return eqx.tree_at(lambda s: s.ys, solution, solution.result.error_if(solution.ys, failed))
+    if np.any(np.asarray(codes) != _SUCCESS):
+        raise RuntimeError(describe())
+    return solution
+
+
+_SUCCESS = int(jax.tree.leaves(RESULTS.successful)[0])
+
+
+def _describe_failure(solution: Solution, dt, t0, n_steps) -> str:
+    """Where a concrete single run failed, and why."""
+    message = RESULTS[solution.result]
+    bad = np.asarray(_nonfinite_saves((solution.ys, solution.energy)))
+    if bad[0]:
+        return f"nhjax.integrate could not start: {message}"
+    steps = int(solution.stats["num_steps"])
+    if steps < n_steps:  # an nhjax method stops at the step that failed
+        start, end = float(t0 + (steps - 1) * dt), float(t0 + steps * dt)
+        return f"nhjax.integrate failed at step {steps} of {n_steps} (t = {start:g} to {end:g}): {message}"
+    first = int(np.argmax(bad))
+    return (
+        f"nhjax.integrate failed: the save at t = {float(solution.ts[first]):g} is not "
+        f"finite (step {steps} of {n_steps}): {message}"
     )
 
 
 @eqx.filter_jit
-def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n_steps, save_every, progress, throw):
+def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n_steps, save_every, progress):
     state_result = system.initial_state_result(y0, args)
     waived = ~check_constraint & (state_result == RESULTS.constraint_violated_initially)
+    valid_dt = jnp.isfinite(dt) & (dt > 0)
+    # A trajectory that cannot start still runs (under vmap its neighbours do), from a
+    # NaN state at harmless times, so that it stops after one failed step.
+    safe_dt = jnp.where(valid_dt, dt, jnp.ones_like(dt))
+    step_times = t0 + safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype)
+    valid_times = jnp.all(jnp.isfinite(step_times)) & jnp.all(jnp.diff(step_times) > 0)
+    step_times = jnp.where(valid_times, step_times, safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype))
     initial_result = first_failure(
-        RESULTS.where(dt > 0, RESULTS.successful, RESULTS.nonpositive_dt),
+        RESULTS.where(valid_dt, RESULTS.successful, RESULTS.invalid_dt),
+        RESULTS.where(valid_times, RESULTS.successful, RESULTS.invalid_t0),
+        args_result(args),
         RESULTS.where(waived, RESULTS.successful, state_result),
     )
     startable = initial_result == RESULTS.successful
-    # A trajectory that cannot start still runs (under vmap its neighbours do), from a
-    # NaN state with a harmless step size, so that it stops after one failed step.
-    safe_dt = jnp.where(dt > 0, dt, jnp.ones_like(dt))
     y_start = nan_where_failed(~startable, y0, y0)
-    step_times = t0 + safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype)
 
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     solution = diffrax.diffeqsolve(
@@ -238,7 +338,7 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
         root_find_steps=getattr(method_state, "total_steps", None),
         max_root_find_steps=getattr(method_state, "max_steps", None),
     )
-    return _assemble(solution.ts, solution.ys, result, stats, throw)
+    return _assemble(solution.ts, solution.ys, result, stats, (y0, dt, t0, args))
 
 
 def integrate_adaptive(
@@ -250,8 +350,8 @@ def integrate_adaptive(
     t0: float | Array = 0.0,
     save_at: Float[Array, " n_saved"] | None = None,
     solver: diffrax.AbstractAdaptiveSolver | None = None,
-    rtol: float = 1e-12,
-    atol: float = 1e-12,
+    rtol: float | None = None,
+    atol: float | None = None,
     max_steps: int = 1_000_000,
     throw: bool = True,
     adjoint: diffrax.AbstractAdjoint | None = None,
@@ -267,25 +367,34 @@ def integrate_adaptive(
     solver (e.g. `diffrax.Tsit5()`) use `nhjax.integrate` with that solver.
 
     **Arguments:** `save_at`, the times to save (default `[t0, t1]`, inside `[t0, t1]`);
-    `rtol`, `atol` for the controller; `max_steps`; `throw` and `adjoint` as for
-    `nhjax.integrate`.
+    `rtol`, `atol` for the controller, `None` for the default of the state's dtype,
+    `default_tolerance` ($10^{-12}$ in float64; in float32, whose rounding is
+    $1.2\cdot10^{-7}$, $100\epsilon = 1.2\cdot10^{-5}$, so that the controller does not
+    chase the rounding with ever smaller steps); `max_steps`; `throw` and `adjoint` as
+    for `nhjax.integrate`.
     Returns a `Solution` whose `stats` hold `num_steps` (accepted steps) and
     `num_rejected_steps`.
     """
-    if not isinstance(max_steps, numbers.Integral) or max_steps < 1:
+    if not _is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+    system.check_shapes(y0, args)
+    check_args(args)
+    dtype = _state_dtype(y0)
+    rtol = default_tolerance(dtype) if rtol is None else rtol
+    atol = default_tolerance(dtype) if atol is None else atol
     if not (rtol > 0 and atol > 0):
         raise ValueError(f"rtol and atol must be positive, got rtol={rtol}, atol={atol}.")
+    for name, value in (("t0", t0), ("t1", t1)):
+        if not isinstance(value, jax.core.Tracer) and not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {name}={value}.")
     if not isinstance(t1, jax.core.Tracer) and not isinstance(t0, jax.core.Tracer) and not t1 > t0:
         raise ValueError(f"t1 must be after t0, got t0={t0}, t1={t1}.")
-    system.check_shapes(y0, args)
-    dtype = _state_dtype(y0)
     t0 = jnp.asarray(t0, dtype=dtype)
     t1 = jnp.asarray(t1, dtype=dtype)
     save_at = jnp.stack([t0, t1]) if save_at is None else jnp.asarray(save_at, dtype=dtype)
     if save_at.ndim != 1:
         raise ValueError(f"save_at must be a 1-D array of times, got shape {save_at.shape}.")
-    return _integrate_adaptive(
+    solution = _integrate_adaptive(
         system,
         diffrax.Dopri8() if solver is None else solver,
         y0,
@@ -297,13 +406,21 @@ def integrate_adaptive(
         rtol=float(rtol),
         atol=float(atol),
         max_steps=int(max_steps),
-        throw=bool(throw),
     )
+    if throw:
+        solution = raise_failure(solution, lambda: f"nhjax.integrate_adaptive failed: {RESULTS[solution.result]}")
+    return solution
+
+
+def default_tolerance(dtype) -> float:
+    r"""`integrate_adaptive`'s default rtol and atol for states of `dtype`:
+    $\max(10^{-12}, 100\epsilon)$."""
+    return max(1e-12, 100 * float(jnp.finfo(dtype).eps))
 
 
 @eqx.filter_jit
-def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, rtol, atol, max_steps, throw):
-    initial_result = system.initial_state_result(y0, args)
+def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, rtol, atol, max_steps):
+    initial_result = first_failure(args_result(args), system.initial_state_result(y0, args))
     y_start = nan_where_failed(initial_result != RESULTS.successful, y0, y0)
 
     solution = diffrax.diffeqsolve(
@@ -325,4 +442,4 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, r
         num_steps=solution.stats["num_accepted_steps"],
         num_rejected_steps=solution.stats["num_rejected_steps"],
     )
-    return _assemble(solution.ts, solution.ys, result, stats, throw)
+    return _assemble(solution.ts, solution.ys, result, stats, (y0, t0, t1, save_at, args))

@@ -13,10 +13,10 @@ from typing import Any, Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Float
 
 from ._linalg import solve_spd
-from ._householder import householder_frame, householder_signs
+from ._householder import householder_frame, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
 from ._adapted import adapted_structure
 from ._system import AbstractSystem, SkewGradientSystem, _require_floating_vector, _require_scalar
@@ -59,9 +59,10 @@ class NonholonomicSystem(AbstractSystem):
     ODE with the multiplier eliminated (`multiplier`), so any diffrax solver integrates
     it; nhjax's methods use the functions themselves.
 
-    `nhjax.integrate` checks the initial state: finite; $H$ of mechanical type there
+    `nhjax.integrate` checks the initial state: finite; $H$, its gradient and $A$
+    finite there; $H$ of mechanical type there
     (quadratic in $p$, no term linear in $p$, $M^{-1}$ positive definite, probed along
-    $p_0$ and two fixed directions); $A(q_0)$ of full rank; and
+    $p_0$ and two fixed directions); $A(q_0)$ of full rank (`rank_result`); and
     $|A(q_0) v_0| \le 1000\epsilon(1 + |A||v_0|)$ (max norms). `project_momentum` puts a
     momentum on the constraint.
     """
@@ -131,12 +132,32 @@ class NonholonomicSystem(AbstractSystem):
         """$X(q; s)$: orthonormal columns spanning $\\mathcal{D}_q = \\ker A(q)$."""
         return householder_frame(self.constraints(q, args).T, signs)[0]
 
-    def has_full_rank(self, q, args, signs) -> Bool[Array, ""]:
-        """Whether the smallest Householder pivot exceeds $1000\\epsilon(1 + \\max|A|)$:
-        false when $A(q)$ has lost rank (or `signs` do not suit `q`)."""
+    def step_result(self, y0, y1, args) -> RESULTS:
+        """`rank_result` at the step's end with the stable signs at its start: $A$ lost
+        rank at $q'$ or between $q$ and $q'$."""
+        return self.rank_result(y1[0], args, self.frame_signs(y0[0], args))
+
+    def rank_result(self, q, args, signs=None) -> RESULTS:
+        r"""`RESULTS.constraints_rank_deficient` if $A(q)$ has lost full row rank, else
+        success. From one Householder factorisation of $A(q)^T$ with the sign choices
+        `signs` (`None`: the stable ones at $q$), two tests, both relative, so that
+        they do not hinge on rounding:
+
+        - some $|x_j| = |R_{jj}|$, the distance of row $j$ of $A$ from the span of the
+          rows before it, is at most $1000\epsilon(1 + \max|A|)$;
+        - some pivot $(|x_j|^2 + s_jx_{j,1}|x_j|)^{1/2}$ is at most $|x_j|/10$: with
+          the signs of a step's frame, chosen stably at the step's start
+          ($s_jx_{j,1} > 0$ there), $x_j$ has turned to within 8 degrees of $-s_je_1$,
+          where the frame $X(\cdot; s)$ is singular. It passed through zero ($A$ lost
+          rank between the step's ends, where no $|x_j|$ need be small) or turned by
+          more than a right angle in one step: either way the step's frame is not
+          smooth across the step.
+        """
         a = self.constraints(q, args)
-        pivot = householder_frame(a.T, signs)[1]
-        return pivot > _tolerance(a.dtype, jnp.max(jnp.abs(a)))
+        pivots, norms = householder_pivots(a.T, signs)
+        full_rank = jnp.all(norms > _tolerance(a.dtype, jnp.max(jnp.abs(a))))
+        smooth = jnp.all(pivots > 0.1 * norms)
+        return RESULTS.where(full_rank & smooth, RESULTS.successful, RESULTS.constraints_rank_deficient)
 
     def momentum(self, q, rho, args, signs) -> Float[Array, " n"]:
         r"""$p = M X (X^T M X)^{-1}\rho$, eq. (ptoptilde): the momentum on the constraint
@@ -199,11 +220,18 @@ class NonholonomicSystem(AbstractSystem):
         v = self.velocity(q, p, args)
         violation = jnp.max(jnp.abs(a @ v))
         satisfied = violation <= _tolerance(q.dtype, jnp.max(jnp.abs(a)) * jnp.max(jnp.abs(v)))
-        full_rank = self.has_full_rank(q, args, self.frame_signs(q, args))
+        grad_q, grad_p = jax.grad(self.hamiltonian, argnums=(0, 1))(q, p, args)
+        evaluations_finite = (
+            jnp.isfinite(self.hamiltonian(q, p, args))
+            & jnp.all(jnp.isfinite(grad_q))
+            & jnp.all(jnp.isfinite(grad_p))
+            & jnp.all(jnp.isfinite(a))
+        )
         return first_failure(
             RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_initial_state),
+            RESULTS.where(evaluations_finite, RESULTS.successful, RESULTS.nonfinite_initial_evaluation),
             RESULTS.where(self._is_mechanical(q, p, args), RESULTS.successful, RESULTS.hamiltonian_not_mechanical),
-            RESULTS.where(full_rank, RESULTS.successful, RESULTS.constraints_rank_deficient),
+            self.rank_result(q, args),
             RESULTS.where(satisfied, RESULTS.successful, RESULTS.constraint_violated_initially),
         )
 

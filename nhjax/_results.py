@@ -1,6 +1,7 @@
 """Result codes of `nhjax.integrate`: diffrax's, plus the checks nhjax makes itself."""
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, PyTree
@@ -11,7 +12,17 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     has its own code; `nhjax.RESULTS[code]` is its message."""
 
     nonfinite_initial_state = "The initial state contains NaN or inf."
-    nonpositive_dt = "The step size dt must be positive."
+    nonfinite_args = "The parameters args contain NaN or inf."
+    invalid_dt = "The step size dt must be positive and finite."
+    invalid_t0 = (
+        "The step times t0 + k dt must be finite and strictly increasing: t0 is not "
+        "finite, or is so large that adding dt does not change it in floating point."
+    )
+    nonfinite_initial_evaluation = (
+        "The system's functions return NaN or inf at the initial state (the "
+        "Hamiltonian, its gradient, the structure matrix or the constraint matrix): "
+        "check the parameters args, e.g. for a negative mass under a square root."
+    )
     structure_not_skew = (
         "structure(x, args) is not skew-symmetric at the initial state, so the flow "
         "would not conserve the Hamiltonian."
@@ -22,9 +33,11 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "Hessian in p is not symmetric positive definite."
     )
     constraints_rank_deficient = (
-        "The constraint matrix A(q) does not have full row rank (a Householder pivot "
-        "vanished), so the constraint distribution has no well-defined frame there. "
-        "The saved states from that point on are not finite."
+        "The constraint matrix A(q) lost full row rank: a Householder pivot vanished "
+        "relative to |A| at the start or at a step's end, or the Householder frame of "
+        "ker A degenerated between a step's ends (A lost rank within the step). The "
+        "constraint distribution has no smooth frame there. The saved states from "
+        "that point on are not finite."
     )
     constraint_violated_initially = (
         "The initial momentum violates the constraint A(q) dH/dp(q, p) = 0 beyond "
@@ -32,18 +45,20 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     root_find_not_converged = (
         "The implicit equations of a step were not solved to tolerance within the "
-        "method's `root_find_max_steps` iterations (or the iteration diverged). Try a "
-        "smaller dt, or a larger `root_find_max_steps`. The saved states from the "
-        "failed step on are not finite."
+        "method's `root_find_max_steps` iterations (or the iteration diverged), while "
+        "the system's functions stayed finite and A(q) kept its rank. Try a smaller "
+        "dt, or a larger `root_find_max_steps`. The saved states from the failed step "
+        "on are not finite."
     )
     root_find_singular = (
         "The Jacobian of a step's implicit equations was singular. Try a smaller dt. "
         "The saved states from the failed step on are not finite."
     )
     nonfinite_step = (
-        "A step produced a non-finite state (NaN or inf): the solution blew up or the "
-        "system's functions returned NaN. The saved states from that step on are not "
-        "finite."
+        "A step produced a non-finite state, energy or constraint residual (NaN or "
+        "inf), or the system's functions returned NaN or inf during a step: the "
+        "solution blew up, or left the region where the system is defined. The saved "
+        "states from that step on are not finite."
     )
 
 
@@ -72,27 +87,40 @@ def first_failure(*results: RESULTS) -> RESULTS:
 
 
 @jax.custom_jvp
-def _nan_derivative_gate(failed, source):
-    return jax.tree.map(jnp.zeros_like, source)
+def _zero_with_nan_derivative(failed, sources):
+    return jnp.zeros((), dtype=sources[0].dtype)
 
 
-@_nan_derivative_gate.defjvp
-def _nan_derivative_gate_jvp(primals, tangents):
-    failed, source = primals
-    _, source_tangent = tangents
-    blocked = jnp.where(failed, jnp.nan, 0.0)
-    return _nan_derivative_gate(failed, source), jax.tree.map(
-        lambda t: t * blocked.astype(t.dtype), source_tangent
+@_zero_with_nan_derivative.defjvp
+def _zero_with_nan_derivative_jvp(primals, tangents):
+    failed, sources = primals
+    _, source_tangents = tangents
+    zero = _zero_with_nan_derivative(failed, sources)
+    blocked = jnp.where(failed, jnp.nan, 0.0).astype(zero.dtype)
+    total = sum(jnp.sum(t).astype(zero.dtype) for t in source_tangents)
+    return zero, blocked * total
+
+
+def nan_derivatives_where(failed: Bool[Array, ""], outputs: PyTree, sources: PyTree) -> PyTree:
+    """`outputs` unchanged in value, with NaN derivatives with respect to every
+    floating-point array in `sources` if `failed` (forward and reverse mode; in reverse
+    mode even where the cotangent is zero, since 0 * NaN is NaN).
+
+    The outputs of a failed run are NaN or diffrax's `inf` fill, constants whose
+    derivatives would otherwise be zero, and a loss that reads them, or only the saves
+    before the failure, would differentiate to a finite, wrong gradient."""
+    arrays = [leaf for leaf in jax.tree.leaves(sources) if eqx.is_inexact_array(leaf)]
+    if not arrays:
+        return outputs
+    gate = _zero_with_nan_derivative(failed, arrays)
+    return jax.tree.map(
+        lambda x: x + gate.astype(x.dtype) if eqx.is_inexact_array(x) else x, outputs
     )
 
 
 def nan_where_failed(failed: Bool[Array, ""], new: PyTree, source: PyTree) -> PyTree:
-    """`new`, or NaN if `failed`, where `new` (with the structure of `source`) was
-    computed from `source`.
-
-    A failed output is NaN in value and in its derivatives with respect to `source`,
-    forward and reverse. Replacing it by a NaN constant alone would give it zero
-    derivatives, and a loss that reads it, or only the saves before the failure, would
-    differentiate to a finite, wrong gradient."""
-    gate = _nan_derivative_gate(failed, source)
-    return jax.tree.map(lambda n, g: jnp.where(failed, jnp.nan, n) + g, new, gate)
+    """`new`, or NaN if `failed`, where `new` was computed from `source`: a failed
+    output is NaN in value and in its derivatives with respect to `source`
+    (`nan_derivatives_where`)."""
+    new = jax.tree.map(lambda n: jnp.where(failed, jnp.nan, n), new)
+    return nan_derivatives_where(failed, new, source)

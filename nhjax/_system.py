@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._results import RESULTS
+from ._results import first_failure, RESULTS
 
 
 class AbstractSystem(diffrax.AbstractTerm):
@@ -35,6 +35,13 @@ class AbstractSystem(diffrax.AbstractTerm):
     def initial_state_result(self, y0, args: Any) -> RESULTS:
         """`RESULTS.successful`, or the code saying why `y0` cannot be integrated."""
 
+    def step_result(self, y0, y1, args: Any) -> RESULTS:
+        """A failure that a step from `y0` to `y1` reveals about the system itself
+        (success by default; a `NonholonomicSystem` checks the rank of its
+        constraints)."""
+        del y0, y1, args
+        return RESULTS.successful
+
     def observables(self, y, args: Any) -> dict[str, Array]:
         """What `nhjax.integrate` records beside the state at each save."""
         return {"energy": self.energy(y, args)}
@@ -48,7 +55,12 @@ class AbstractSystem(diffrax.AbstractTerm):
 
 
 def _require_floating_vector(name: str, x) -> None:
-    if not (eqx.is_array(x) or hasattr(x, "shape")) or jnp.ndim(x) != 1:
+    if not (eqx.is_array(x) or hasattr(x, "shape")):
+        raise ValueError(
+            f"{name} must be a 1-D array, got a {type(x).__name__}"
+            + (" (convert it with jnp.asarray)." if isinstance(x, (list, tuple)) else ".")
+        )
+    if jnp.ndim(x) != 1:
         raise ValueError(
             f"{name} must be a 1-D array, got shape {jnp.shape(x)} "
             f"({type(x).__name__})."
@@ -103,12 +115,15 @@ class SkewGradientSystem(AbstractSystem):
 
     def initial_state_result(self, y0, args):
         structure = self.structure(y0, args)
+        evaluations_finite = (
+            jnp.isfinite(self.hamiltonian(y0, args))
+            & jnp.all(jnp.isfinite(self.gradient(y0, args)))
+            & jnp.all(jnp.isfinite(structure))
+        )
         asymmetry = jnp.max(jnp.abs(structure + structure.T))
         tolerance = 100 * jnp.finfo(structure.dtype).eps * (1 + jnp.max(jnp.abs(structure)))
-        return RESULTS.where(
-            jnp.all(jnp.isfinite(y0)),
-            RESULTS.where(
-                asymmetry <= tolerance, RESULTS.successful, RESULTS.structure_not_skew
-            ),
-            RESULTS.nonfinite_initial_state,
+        return first_failure(
+            RESULTS.where(jnp.all(jnp.isfinite(y0)), RESULTS.successful, RESULTS.nonfinite_initial_state),
+            RESULTS.where(evaluations_finite, RESULTS.successful, RESULTS.nonfinite_initial_evaluation),
+            RESULTS.where(asymmetry <= tolerance, RESULTS.successful, RESULTS.structure_not_skew),
         )

@@ -92,10 +92,11 @@ def test_argument_errors():
         nh.integrate(oscillator, METHOD, x0, 0.1, 10, save_every=3)
 
 
-def test_traced_nonpositive_dt_gets_a_result_code():
+def test_traced_invalid_dt_gets_a_result_code():
     oscillator = nh.SkewGradientSystem(lambda x, args: 0.5 * x @ x, _rotation)
     run = jax.jit(lambda dt: nh.integrate(oscillator, METHOD, jnp.array([1.0, 0.0]), dt, 10, throw=False).result)
-    assert run(-0.1) == nh.RESULTS.nonpositive_dt
+    assert run(-0.1) == nh.RESULTS.invalid_dt
+    assert run(jnp.inf) == nh.RESULTS.invalid_dt
     assert run(0.1) == nh.RESULTS.successful
     with pytest.raises(Exception, match="dt must be positive"):
         jax.jit(lambda dt: nh.integrate(oscillator, METHOD, jnp.array([1.0, 0.0]), dt, 10).ys)(-0.1)
@@ -220,3 +221,102 @@ def test_a_diffrax_solver_that_blows_up_gets_a_result_code():
     assert solution.result == nh.RESULTS.nonfinite_step
     with pytest.raises(Exception, match="finite"):
         nh.integrate(GEARBOX.canonical, diffrax.Euler(), y0, 50.0, 400, save_every=400)
+
+
+def _gearbox_start():
+    q0 = jnp.array([0.9, -0.4, 0.3])
+    return q0, GEARBOX.canonical.project_momentum(q0, jnp.array([-0.3, 1.0, 0.5]))
+
+
+def test_an_overflowing_energy_is_a_failure_even_while_the_states_are_finite():
+    """Tsit5 at h = 100 on the gearbox: the states reach 1e189, still finite, while the
+    energy overflows to inf. That save and every one after are NaN, with the code."""
+    solution = nh.integrate(GEARBOX.canonical, diffrax.Tsit5(), _gearbox_start(), 100.0, 10, throw=False)
+    assert solution.result == nh.RESULTS.nonfinite_step
+    finite = np.isfinite(np.asarray(solution.energy))
+    first_bad = int(np.argmin(finite))
+    assert first_bad > 0 and not finite[first_bad:].any()
+    assert not np.isfinite(np.asarray(solution.ys[0][first_bad:])).any()
+    assert np.isfinite(np.asarray(solution.ys[0][:first_bad])).all()
+    with pytest.raises(RuntimeError, match=r"nhjax.integrate failed: the save at t = \d+ is not finite .*non-finite state, energy"):
+        nh.integrate(GEARBOX.canonical, diffrax.Tsit5(), _gearbox_start(), 100.0, 10)
+
+
+def test_the_error_names_the_step_and_time_of_the_failure():
+    starved = nh.GonzalezF(root_find_max_steps=2)
+    with pytest.raises(RuntimeError, match=r"failed at step 1 of 10 \(t = 0 to 2\): The implicit equations"):
+        nh.integrate(GEARBOX.canonical, starved, _gearbox_start(), 2.0, 10)
+    with pytest.raises(RuntimeError, match="could not start: The initial momentum violates"):
+        q0, p0 = _gearbox_start()
+        nh.integrate(GEARBOX.canonical, starved, (q0, p0 + 1.0), 2.0, 10)
+
+
+def test_step_sizes_and_times_that_cannot_be_stepped():
+    oscillator = nh.SkewGradientSystem(lambda x, args: 0.5 * x @ x, _rotation)
+    x0 = jnp.array([1.0, 0.0])
+    for dt in (jnp.inf, -jnp.inf, jnp.nan, 0.0):
+        with pytest.raises(ValueError, match="dt must be positive and finite"):
+            nh.integrate(oscillator, METHOD, x0, float(dt), 10)
+    for t0 in (jnp.nan, jnp.inf):
+        with pytest.raises(ValueError, match="t0 must be finite"):
+            nh.integrate(oscillator, METHOD, x0, 0.1, 10, t0=float(t0))
+    # 1e20 + 0.1 == 1e20: the steps would not advance.
+    solution = nh.integrate(oscillator, METHOD, x0, 0.1, 10, t0=1e20, throw=False)
+    assert solution.result == nh.RESULTS.invalid_t0
+    with pytest.raises(RuntimeError, match="t0 \\+ k dt must be finite and strictly increasing"):
+        nh.integrate(oscillator, METHOD, x0, 0.1, 10, t0=1e20)
+    traced = jax.jit(lambda t0: nh.integrate(oscillator, METHOD, x0, 0.1, 10, t0=t0, throw=False).result)
+    assert traced(jnp.nan) == nh.RESULTS.invalid_t0
+    assert traced(1.0) == nh.RESULTS.successful
+
+
+def test_nonfinite_parameters_are_named():
+    sleigh = nh.examples.chaplygin_sleigh()
+    x0 = sleigh.initial_state()
+    with pytest.raises(ValueError, match=r"args\['J'\] is not finite"):
+        nh.integrate(sleigh.adapted, METHOD, x0, 0.5, 10, args=dict(sleigh.args, J=jnp.nan))
+    with pytest.raises(ValueError, match=r"args\['m'\] is not finite"):
+        nh.integrate(sleigh.canonical, nh.SIDLA(), sleigh.from_adapted(x0), 0.5, 10, args=dict(sleigh.args, m=jnp.inf))
+    traced = jax.jit(lambda m: nh.integrate(sleigh.adapted, METHOD, x0, 0.5, 10, args=dict(sleigh.args, m=m), throw=False).result)
+    assert traced(jnp.inf) == nh.RESULTS.nonfinite_args
+    # A negative mass under a square root: the structure is NaN at the start.
+    assert traced(-1.0) == nh.RESULTS.nonfinite_initial_evaluation
+    assert traced(1.0) == nh.RESULTS.successful
+    with pytest.raises(ValueError, match="m must be positive and finite, got m=-1"):
+        nh.examples.chaplygin_sleigh(m=-1.0)
+    with pytest.raises(ValueError, match="J_phi must be positive"):
+        nh.examples.rolling_disk(J_phi=0.0)
+    with pytest.raises(ValueError, match="I22 must be positive"):
+        nh.examples.suslov(I22=jnp.nan)
+
+
+def test_an_example_without_its_args_says_what_it_needs():
+    sleigh = nh.examples.chaplygin_sleigh()
+    with pytest.raises(ValueError, match="Chaplygin sleigh's functions read the parameters J, a, m from args"):
+        nh.integrate(sleigh.adapted, METHOD, sleigh.initial_state(), 0.5, 10)
+    disk = nh.examples.rolling_disk()
+    with pytest.raises(ValueError, match="rolling disk's functions read the parameters m, r, J_theta, J_phi"):
+        nh.integrate(disk.canonical, nh.SIDLA(), disk.from_adapted(disk.initial_state()), 0.1, 10, args={"m": 1.0})
+
+
+def test_states_and_step_counts_of_the_wrong_kind():
+    q0, p0 = _gearbox_start()
+    with pytest.raises(ValueError, match="q must be a 1-D array, got a list \\(convert it with jnp.asarray\\)"):
+        nh.integrate(GEARBOX.canonical, nh.SIDLA(), ([0.9, -0.4, 0.3], p0), 0.1, 10)
+    with pytest.raises(ValueError, match="SkewGradientSystem must be a 1-D array, got a tuple"):
+        nh.integrate(QUARTIC.adapted, METHOD, (QUARTIC.initial_state(0.5),), 0.1, 10)
+    with pytest.raises(ValueError, match="n_steps must be a positive int, got True"):
+        nh.integrate(GEARBOX.canonical, nh.SIDLA(), (q0, p0), 0.1, True)
+
+
+def test_adaptive_tolerances_follow_the_dtype():
+    """float32: the default tolerance is 100 eps, not float64's 1e-12, which float32's
+    rounding cannot meet (the controller would shrink the steps without end)."""
+    double = GEARBOX.random_initial_state(jax.random.key(0))
+    y0 = jax.tree.map(lambda y: y.astype(jnp.float32), double)
+    solution = nh.integrate_adaptive(GEARBOX.canonical, y0, 10.0)
+    assert solution.result == nh.RESULTS.successful
+    assert int(solution.stats["num_steps"]) < 2000
+    reference = nh.integrate_adaptive(GEARBOX.canonical, double, 10.0)
+    for single, double in zip(solution.ys, reference.ys):
+        np.testing.assert_allclose(single[-1], double[-1], atol=1e-3)

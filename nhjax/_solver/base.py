@@ -2,9 +2,9 @@
 that follow the dtype, per-step result codes, and root-finder statistics carried in the
 diffrax solver state.
 
-diffrax's loop accepts only its own result codes from a step, so a failure that only an
-nhjax method can name (such as a constraint matrix losing rank) travels in the solver
-state as an `nhjax.RESULTS` code, while the step reports `diffrax.RESULTS.breakdown`;
+diffrax's loop accepts only its own result codes from a step, so a step's failure
+travels in the solver state as an `nhjax.RESULTS` code naming its cause
+(`step_failure`), while the step reports `diffrax.RESULTS.breakdown`;
 `nhjax.integrate` reports the nhjax code."""
 
 from typing import Any, ClassVar
@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Int, PyTree
 
-from .._results import nan_where_failed, RESULTS
+from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
 from .chord import Chord, invert
 
@@ -111,10 +111,9 @@ class AbstractMethod(diffrax.AbstractSolver):
       Jacobian (see `nhjax._solver.chord`), whose Jacobian at the guess,
       `chord_jacobian(unknowns, data)` (by default `jax.jacfwd`), the default chord root
       finder uses; by default the residual itself;
-    - `complete(unknowns, data) -> (y1, failure, carry)`: the new state, an nhjax code
-      for failures only the method can detect, and what the next step receives as
-      `carry` (the first step receives `initial_carry(system, y0, args)`, by default
-      `None`).
+    - `complete(unknowns, data) -> (y1, carry)`: the new state, and what the next step
+      receives as `carry` (the first step receives `initial_carry(system, y0, args)`,
+      by default `None`).
 
     Subclasses set `root_finder` (`None`: `default_root_finder` for the state's dtype)
     and `root_find_max_steps`.
@@ -141,7 +140,7 @@ class AbstractMethod(diffrax.AbstractSolver):
     def chord_jacobian(self, unknowns, data) -> Array:
         return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
-    def complete(self, unknowns, data) -> tuple[Any, RESULTS, PyTree]:
+    def complete(self, unknowns, data) -> tuple[Any, PyTree]:
         raise NotImplementedError
 
     def init(self, terms, t0, t1, y0, args) -> MethodState:
@@ -172,8 +171,14 @@ class AbstractMethod(diffrax.AbstractSolver):
         guess, fixed_data = lax.stop_gradient(guess), _no_gradient(data)
         root_finder = self._root_finder(guess.dtype)
         options = {}
+        evaluations_finite = jnp.all(jnp.isfinite(guess))
+        singular = jnp.array(False)
         if isinstance(root_finder, Chord):
-            options["inverse"] = invert(self.chord_jacobian(guess, fixed_data))
+            jacobian = self.chord_jacobian(guess, fixed_data)
+            inverse = invert(jacobian)
+            evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(jacobian))
+            singular = ~jnp.all(jnp.isfinite(inverse))
+            options["inverse"] = inverse
         solution = optx.root_find(
             self.residual,
             root_finder,
@@ -183,27 +188,54 @@ class AbstractMethod(diffrax.AbstractSolver):
             max_steps=self.root_find_max_steps,
             throw=False,
         )
-        result = diffrax.RESULTS.promote(solution.result)
+        if isinstance(root_finder, Chord):
+            residual_size = solution.state.residual_size
+        else:
+            residual_size = jnp.max(jnp.abs(self.residual(solution.value, fixed_data)))
+        evaluations_finite = evaluations_finite & jnp.isfinite(residual_size)
         root = _implicit_root(solution.value, data, residual=self.residual)
-        y1, failure, carry = self.complete(root, data)
+        y1, carry = self.complete(root, data)
+        failure = step_failure(
+            evaluations_finite, _all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
+        )
         state = solver_state.record(solution.stats["num_steps"], failure, carry)
-        return self.finish(y0, y1, result, state, failure)
+        return self.finish(y0, y1, state, failure)
 
     @staticmethod
-    def finish(y0, y1, result, solver_state: MethodState, failure=RESULTS.successful):
-        """The step's return tuple. A failed or non-finite step returns NaN, never a
-        plausible-looking state, together with its result code, and its derivatives
-        with respect to `y0` are NaN too (`nan_where_failed`). `failure` is a code the
-        method detected itself (see the module docstring)."""
-        result = diffrax.RESULTS.where(
-            failure == RESULTS.successful, result, diffrax.RESULTS.breakdown
-        )
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(y1)]))
-        result = diffrax.RESULTS.where(
-            (result == diffrax.RESULTS.successful) & ~finite,
-            diffrax.RESULTS.nonfinite,
-            result,
-        )
-        y1 = nan_where_failed(result != diffrax.RESULTS.successful, y1, y0)
+    def finish(y0, y1, solver_state: MethodState, failure: RESULTS):
+        """The step's return tuple. A failed step returns NaN, never a plausible-looking
+        state, with NaN derivatives with respect to `y0` (`nan_where_failed`); diffrax
+        receives `breakdown`, and the nhjax code travels in `solver_state` (see the
+        module docstring)."""
+        failed = failure != RESULTS.successful
+        result = diffrax.RESULTS.where(failed, diffrax.RESULTS.breakdown, diffrax.RESULTS.successful)
+        y1 = nan_where_failed(failed, y1, y0)
         dense_info = dict(y0=y0, y1=y1)
         return y1, None, dense_info, solver_state, result
+
+
+def _all_finite(tree: PyTree) -> Array:
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]))
+
+
+def step_failure(evaluations_finite, end_finite, system_result, singular, root_find_result) -> RESULTS:
+    """The code of a step, naming the first cause in this order:
+
+    1. the system's functions returned NaN or inf at the guess or at an iterate, or
+       the new state is not finite: `nonfinite_step` (the root finder would otherwise
+       report its own failure, a consequence);
+    2. a failure the system sees in the step (`AbstractSystem.step_result`), such as
+       $A$ losing rank (`NonholonomicSystem.rank_result`), checked at the last iterate
+       even when the root find failed, since across a rank loss the step's equations
+       may have no root;
+    3. a singular chord matrix: `root_find_singular`;
+    4. the root finder's own failure: `root_find_not_converged` (or its translation of
+       another optimistix code).
+    """
+    root_find = from_diffrax(diffrax.RESULTS.promote(root_find_result))
+    return first_failure(
+        RESULTS.where(evaluations_finite & end_finite, RESULTS.successful, RESULTS.nonfinite_step),
+        system_result,
+        RESULTS.where(singular, RESULTS.root_find_singular, RESULTS.successful),
+        root_find,
+    )

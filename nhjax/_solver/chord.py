@@ -57,7 +57,9 @@ class Chord(optx.AbstractRootFinder):
     the last correction and the residual are both below `atol` (max norm), or when the
     iteration has stalled at the rounding floor (below); fails with
     `optimistix.RESULTS.nonlinear_divergence` if the corrections grow (by more than 2x
-    from one iteration to the next) or become non-finite.
+    from one iteration to the next) or become non-finite, then returning the last
+    finite iterate. The state's `residual_size` is that of the last residual evaluated
+    (in units of `atol`): non-finite when the function returned NaN or inf there.
 
     **Stall at the rounding floor.** A residual that involves a discrete gradient is
     computed with an error of about $\varepsilon|H|/|x' - x|$ (the difference
@@ -92,6 +94,10 @@ class Chord(optx.AbstractRootFinder):
         del options, tags
         residual, aux = fn(y, args)
         diff = state.inverse @ residual
+        # A non-finite correction (a NaN residual, a singular matrix) ends the
+        # iteration as diverged; the iterate stays the last finite one, so that the
+        # caller can still tell where the step was heading.
+        diff = jnp.where(jnp.all(jnp.isfinite(diff)), diff, jnp.nan)
         new_state = _ChordState(
             state.inverse,
             self.norm(diff) / (self.atol + self.rtol * self.norm(y)),
@@ -99,7 +105,7 @@ class Chord(optx.AbstractRootFinder):
             self.norm(residual) / self.atol,
             state.steps + 1,
         )
-        return y - diff, new_state, aux
+        return jnp.where(jnp.isnan(diff), y, y - diff), new_state, aux
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, y, args, options, tags

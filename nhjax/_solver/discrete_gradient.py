@@ -7,7 +7,6 @@ from typing import ClassVar
 import optimistix as optx
 
 from .._discrete_gradient import avf, gonzalez, itoh_abe
-from .._results import RESULTS
 from .._system import SkewGradientSystem
 from .base import AbstractMethod, increment_scale
 from .chord import midpoint_gradient
@@ -92,4 +91,4 @@ class DiscreteGradient(AbstractMethod):
 
     def complete(self, u, data):
         _, x, _, scale, _ = data
-        return x + scale * u, RESULTS.successful, None
+        return x + scale * u, None

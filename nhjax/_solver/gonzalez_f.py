@@ -8,7 +8,6 @@ import optimistix as optx
 
 from .._discrete_gradient import gonzalez
 from .._nonholonomic import NonholonomicSystem
-from .._results import RESULTS
 from .base import AbstractMethod, increment_scale, positive_unit
 from .chord import midpoint_gradient
 
@@ -84,4 +83,4 @@ class GonzalezF(AbstractMethod):
         _, z, _, scale, _, _ = data
         n = z.shape[0] // 2
         z1 = z + scale * unknowns[: 2 * n]
-        return (z1[:n], z1[n:]), RESULTS.successful, None
+        return (z1[:n], z1[n:]), None

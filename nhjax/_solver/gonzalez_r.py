@@ -11,7 +11,6 @@ from jaxtyping import Array
 
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
-from .._results import RESULTS
 from .base import AbstractMethod, increment_scale
 
 
@@ -67,8 +66,9 @@ class GonzalezR(AbstractMethod):
     - `difference_step`: the finite-difference increment, `None` for $|h|$.
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
 
-    A step whose frame degenerates ($A$ losing rank at $q$ or $q'$) fails with
-    `nhjax.RESULTS.constraints_rank_deficient`.
+    A step whose frame degenerates ($A$ losing rank at $q'$, or between $q$ and $q'$,
+    where the frame with the step's signs turns singular) fails with
+    `nhjax.RESULTS.constraints_rank_deficient` (`NonholonomicSystem.rank_result`).
     """
 
     term_structure: ClassVar = NonholonomicSystem
@@ -193,10 +193,5 @@ class GonzalezR(AbstractMethod):
         system, signs = data.reduced.system, data.reduced.signs
         zeta1 = zeta + scale * u
         y1 = system.from_reduced(zeta1, args, signs)
-        q = zeta[: y1[0].shape[0]]
-        full_rank = system.has_full_rank(q, args, signs) & system.has_full_rank(
-            y1[0], args, signs
-        )
-        failure = RESULTS.where(full_rank, RESULTS.successful, RESULTS.constraints_rank_deficient)
         velocity = lax.stop_gradient(scale * u / data.h)
-        return y1, failure, _Carry(zeta1, signs, velocity, lax.stop_gradient(data.previous_velocity))
+        return y1, _Carry(zeta1, signs, velocity, lax.stop_gradient(data.previous_velocity))

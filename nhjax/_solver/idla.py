@@ -10,7 +10,6 @@ import optimistix as optx
 
 from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
-from .._results import RESULTS
 from .base import AbstractMethod, increment_scale, positive_unit
 
 
@@ -143,4 +142,4 @@ class IDLA(AbstractMethod):
         n = q1.shape[0]
         safe_h = jnp.where(h == 0, jnp.ones_like(h), h)
         multiplier = data["p_unit"] * u[n:] / (safe_h * data["a_unit"])
-        return (q1, p1), RESULTS.successful, multiplier
+        return (q1, p1), multiplier

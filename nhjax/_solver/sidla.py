@@ -12,7 +12,6 @@ import optimistix as optx
 from jax.extend.core import ClosedJaxpr, Jaxpr, Var
 
 from .._nonholonomic import NonholonomicSystem
-from .._results import RESULTS
 from .base import AbstractMethod, increment_scale, positive_unit
 
 
@@ -244,4 +243,4 @@ class SIDLA(AbstractMethod):
         h = data["h"]
         safe_h = jnp.where(h == 0, jnp.ones_like(h), h)
         multiplier = data["p_unit"] * impulse / (safe_h * data["a_unit"])
-        return (q1, p1), RESULTS.successful, multiplier
+        return (q1, p1), multiplier

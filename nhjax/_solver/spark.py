@@ -10,7 +10,6 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from .._nonholonomic import NonholonomicSystem
-from .._results import RESULTS
 from ._spark_tableau import (
     LOBATTO_IIIA_B_C_CSTAR_D_2 as LOBATTO_IIIA_B_C_CSTAR_D_2,
     lobatto_spark_tableau as lobatto_spark_tableau,
@@ -173,4 +172,4 @@ class SPARK(AbstractMethod):
 
     def complete(self, unknowns, data):
         _, _, y1 = self._stages(unknowns, data)
-        return y1, RESULTS.successful, None
+        return y1, None

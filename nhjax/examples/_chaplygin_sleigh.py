@@ -17,22 +17,33 @@ from jaxtyping import Array, Float
 from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from ._parameters import parameters, require_finite, require_positive
+
+
+_NAME = "Chaplygin sleigh"
+
+
+def _parameters(args):
+    """(J, a, m) from `args`."""
+    return parameters(args, ("J", "a", "m"), _NAME)
 
 
 def _rotational_inertia(args):
-    return args["J"] + args["m"] * args["a"] ** 2
+    J, a, m = _parameters(args)
+    return J + m * a**2
 
 
 def bracket_coefficient(args):
     r"""$C^1_{12} = a\sqrt{m}/(J + ma^2)$, so that $\dot\rho_1 = -C^1_{12}\rho_1\rho_2$,
     $\dot\rho_2 = C^1_{12}\rho_1^2$ (mom-eq)."""
-    return args["a"] * jnp.sqrt(args["m"]) / _rotational_inertia(args)
+    _, a, m = _parameters(args)
+    return a * jnp.sqrt(m) / _rotational_inertia(args)
 
 
 def _frame(q, args):
     theta = q[2]
     zero = jnp.zeros_like(theta)
-    inv_sqrt_m = 1 / jnp.sqrt(args["m"])
+    inv_sqrt_m = 1 / jnp.sqrt(_parameters(args)[2])
     return jnp.array(
         [
             [zero, jnp.cos(theta) * inv_sqrt_m],
@@ -43,7 +54,8 @@ def _frame(q, args):
 
 
 def _metric(q, args):
-    theta, m, a = q[2], args["m"], args["a"]
+    theta = q[2]
+    _, a, m = _parameters(args)
     zero = jnp.zeros_like(theta)
     return jnp.array(
         [
@@ -84,6 +96,10 @@ class ChaplyginSleigh(eqx.Module):
     J: float = 8.0
     a: float = 1.0
     m: float = 1.0
+
+    def __check_init__(self):
+        require_positive(_NAME, J=self.J, m=self.m)
+        require_finite(_NAME, a=self.a)
 
     @property
     def args(self) -> dict[str, float]:

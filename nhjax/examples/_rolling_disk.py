@@ -16,10 +16,19 @@ from jaxtyping import Array, Float, ArrayLike
 from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from ._parameters import parameters, require_positive
+
+
+_NAME = "rolling disk"
+
+
+def _parameters(args):
+    """(m, r, J_theta, J_phi) from `args`."""
+    return parameters(args, ("m", "r", "J_theta", "J_phi"), _NAME)
 
 
 def _frame(q, args):
-    theta, r = q[2], args["r"]
+    theta, r = q[2], _parameters(args)[1]
     zero, one = jnp.zeros_like(theta), jnp.ones_like(theta)
     return jnp.array(
         [[r * jnp.cos(theta), zero], [r * jnp.sin(theta), zero], [zero, one], [one, zero]]
@@ -28,13 +37,15 @@ def _frame(q, args):
 
 def _metric(q, args):
     del q
-    return jnp.diag(jnp.stack([args["m"], args["m"], args["J_theta"], args["J_phi"]]))
+    m, _, J_theta, J_phi = _parameters(args)
+    return jnp.diag(jnp.stack([m, m, J_theta, J_phi]))
 
 
 def _hamiltonian(x, args):
     rho = x[4:]
-    rolling_inertia = args["m"] * args["r"] ** 2 + args["J_phi"]
-    return 0.5 * (rho[0] ** 2 / rolling_inertia + rho[1] ** 2 / args["J_theta"])
+    m, r, J_theta, J_phi = _parameters(args)
+    rolling_inertia = m * r**2 + J_phi
+    return 0.5 * (rho[0] ** 2 / rolling_inertia + rho[1] ** 2 / J_theta)
 
 
 def _structure(x, args):
@@ -47,7 +58,7 @@ def _canonical_hamiltonian(q, p, args):
 
 
 def _constraints(q, args):
-    theta, r = q[2], args["r"]
+    theta, r = q[2], _parameters(args)[1]
     zero, one = jnp.zeros_like(theta), jnp.ones_like(theta)
     return jnp.array(
         [[one, zero, zero, -r * jnp.cos(theta)], [zero, one, zero, -r * jnp.sin(theta)]]
@@ -63,6 +74,9 @@ class RollingDisk(eqx.Module):
     r: float = 1.0
     J_theta: float = 0.25
     J_phi: float = 0.5
+
+    def __check_init__(self):
+        require_positive(_NAME, m=self.m, r=self.r, J_theta=self.J_theta, J_phi=self.J_phi)
 
     @property
     def args(self) -> dict[str, float]:
@@ -113,10 +127,11 @@ class RollingDisk(eqx.Module):
         $\omega_\phi = \rho_1/(mr^2 + J_\phi)$, $\omega_\theta = \rho_2/J_\theta \ne 0$."""
         args = self.args if args is None else args
         x1, x2, theta0, phi0, rho1, rho2 = x0
-        omega_phi = rho1 / (args["m"] * args["r"] ** 2 + args["J_phi"])
-        omega_theta = rho2 / args["J_theta"]
+        m, r, J_theta, J_phi = _parameters(args)
+        omega_phi = rho1 / (m * r**2 + J_phi)
+        omega_theta = rho2 / J_theta
         theta = theta0 + omega_theta * t
-        radius = args["r"] * omega_phi / omega_theta
+        radius = r * omega_phi / omega_theta
         return jnp.stack(
             [
                 x1 + radius * (jnp.sin(theta) - jnp.sin(theta0)),

@@ -15,14 +15,25 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._system import SkewGradientSystem
+from ._parameters import parameters, require_finite, require_positive
+
+
+_NAME = "Suslov problem"
+
+
+def _parameters(args):
+    """(I11, I22, I13, I23) from `args`."""
+    return parameters(args, ("I11", "I22", "I13", "I23"), _NAME)
 
 
 def _bracket_coefficients(args):
-    return args["I13"] / args["I11"], args["I23"] / args["I22"]
+    I11, I22, I13, I23 = _parameters(args)
+    return I13 / I11, I23 / I22
 
 
 def _hamiltonian(rho, args):
-    return 0.5 * (rho[0] ** 2 / args["I11"] + rho[1] ** 2 / args["I22"])
+    I11, I22, _, _ = _parameters(args)
+    return 0.5 * (rho[0] ** 2 / I11 + rho[1] ** 2 / I22)
 
 
 def _structure(rho, args):
@@ -40,6 +51,10 @@ class Suslov(eqx.Module):
     I22: float = 2.0
     I13: float = 0.5
     I23: float = 0.3
+
+    def __check_init__(self):
+        require_positive(_NAME, I11=self.I11, I22=self.I22)
+        require_finite(_NAME, I13=self.I13, I23=self.I23)
 
     @property
     def args(self) -> dict[str, float]:
@@ -61,7 +76,7 @@ class Suslov(eqx.Module):
         $u = \psi - \psi_*$ is $\sin u(t) = \tanh(At + \operatorname{artanh}\sin u_0)$ on
         the half-circle $\cos u > 0$ (and with $A \to -A$, $u \to u - \pi$ on the other)."""
         args = self.args if args is None else args
-        i11, i22 = args["I11"], args["I22"]
+        i11, i22, _, _ = _parameters(args)
         c1, c2 = _bracket_coefficients(args)
         energy = _hamiltonian(rho0, args)
         semi_axes = jnp.sqrt(2 * energy * jnp.stack([i11, i22]))

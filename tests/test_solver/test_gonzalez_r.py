@@ -236,3 +236,47 @@ def test_float32():
     eps = float(jnp.finfo(jnp.float32).eps)
     assert relative_energy_error(solution) <= 100 * eps
     assert float(jnp.max(jnp.abs(solution.constraint))) <= 100 * eps
+
+
+def _losing_rank(second_row):
+    """k = 2 constraints whose second row loses rank where q4 crosses 0, near t = 1.59
+    from the state below (q4 falls through 0 at a steady pace)."""
+
+    def hamiltonian(q, p, args):
+        return 0.5 * p @ p + 0.5 * (q[0] ** 2 + q[1] ** 2 + q[2] ** 2) - jnp.cos(q[3])
+
+    def constraints(q, args):
+        return jnp.stack([jnp.array([1.0, 0.0, 1.0, 0.0]), second_row(q)])
+
+    system = nh.NonholonomicSystem(hamiltonian, constraints)
+    q0 = jnp.array([0.2, 0.1, -0.1, 0.5])
+    return system, (q0, system.project_momentum(q0, jnp.array([0.3, 0.2, -0.1, 0.0])))
+
+
+@pytest.mark.parametrize(
+    "second_row",
+    [
+        lambda q: jnp.array([1.0, q[3], 1.0, q[3] ** 2]),  # rank lost only at q4 = 0 itself
+        lambda q: jnp.array([1.0, q[3], 1.0, 0.0]),  # the frame flips across q4 = 0
+    ],
+    ids=["smooth-distribution", "flipping-frame"],
+)
+def test_rank_lost_between_steps_is_reported_at_its_time(second_row):
+    """A steps over the point where A loses rank, so no pivot at a step's end need be
+    small; the frame with the step's signs degenerates across the step, and the code
+    says so at the crossing, at every step size, rather than a root find that does not
+    converge (or, depending on rounding, no failure at all)."""
+    system, y0 = _losing_rank(second_row)
+    steps = jnp.array([0.05, 0.01, 0.002])
+
+    def first_failure_time(dt):
+        solution = nh.integrate(system, METHOD, y0, dt, 1000, throw=False)
+        finite = jnp.all(jnp.isfinite(solution.ys[0]), axis=1)
+        return solution.result, solution.ts[jnp.argmin(finite)]
+
+    results, times = jax.vmap(first_failure_time)(steps)
+    assert bool(jnp.all(results == nh.RESULTS.constraints_rank_deficient))
+    crossing = 1.59  # where q4 = 0, to about 0.01
+    np.testing.assert_allclose(times, crossing, atol=0.06)
+    with pytest.raises(RuntimeError, match=r"failed at step 1[56]\d of 200 \(t = 1.5\d+ to 1.[56]\d*\): The constraint matrix A\(q\) lost full row rank"):
+        nh.integrate(system, METHOD, y0, 0.01, 200)

@@ -144,7 +144,7 @@ def test_constraint_to_roundoff_with_a_q_dependent_metric_and_two_constraints(na
 def test_result_codes_per_trajectory_under_vmap():
     """A batch of three: a good start; a start with NaN momenta; and one whose
     Hamiltonian turns NaN at q3 > 1. q3 is a free rotation (A has no q3 column), so
-    q3 = 0.55 + t from p3 = 1, and the fifth step, to q3 = 1.05, fails. Each has its
+    q3 = 0.55 + t from p3 = 1, and the fifth step, to q3 = 1.05, fails, as a non-finite step. Each has its
     own code; the good one is the same as in a batch of good starts only."""
 
     def hamiltonian(q, p, args):
@@ -167,7 +167,7 @@ def test_result_codes_per_trajectory_under_vmap():
     batch = jax.vmap(run)(starts)
     assert bool((batch.result == nh.RESULTS.successful)[0])
     assert bool((batch.result == nh.RESULTS.nonfinite_initial_state)[1])
-    assert bool((batch.result == nh.RESULTS.root_find_not_converged)[2])
+    assert bool((batch.result == nh.RESULTS.nonfinite_step)[2])
     assert bool(jnp.all(jnp.isfinite(batch.ys[0][0])))
     assert not bool(jnp.any(jnp.isfinite(batch.ys[0][1])))
     assert bool(jnp.all(jnp.isfinite(batch.ys[0][2, :5])))

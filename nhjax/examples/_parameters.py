@@ -1,0 +1,34 @@
+"""Reading and checking the examples' parameters."""
+
+import math
+
+import jax
+
+
+def parameters(args, names: tuple[str, ...], example: str) -> tuple:
+    """`args[name]` for each of `names`, or a `ValueError` saying what the example's
+    functions need when `args` does not hold them (such as `args=None`)."""
+    try:
+        return tuple(args[name] for name in names)
+    except (TypeError, KeyError, IndexError):
+        raise ValueError(
+            f"The {example}'s functions read the parameters {', '.join(names)} from "
+            f"args: pass the example's .args (a dict with those keys), got args={args!r}."
+        ) from None
+
+
+def require_positive(example: str, **values) -> None:
+    """A `ValueError` for a concrete parameter that is not positive and finite (traced
+    ones are left to the initial-state checks of `nhjax.integrate`)."""
+    for name, value in values.items():
+        if isinstance(value, jax.core.Tracer):
+            continue
+        if not (math.isfinite(float(value)) and float(value) > 0):
+            raise ValueError(f"The {example}'s {name} must be positive and finite, got {name}={value}.")
+
+
+def require_finite(example: str, **values) -> None:
+    """A `ValueError` for a concrete parameter that is not finite."""
+    for name, value in values.items():
+        if not isinstance(value, jax.core.Tracer) and not math.isfinite(float(value)):
+            raise ValueError(f"The {example}'s {name} must be finite, got {name}={value}.")
