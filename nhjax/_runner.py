@@ -8,6 +8,8 @@ import numbers
 import os
 import pathlib
 import tempfile
+import warnings
+import zipfile
 
 import equinox as eqx
 import jax
@@ -15,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from ._integrate import _trace_floats, check_step_counts, integrate, Solution
+from ._integrate import _trace_floats, check_args, check_step_counts, check_step_size, integrate, Solution
 from ._results import RESULTS
 
 
@@ -23,7 +25,7 @@ from ._results import RESULTS
 # methods' work, so that an interruption loses little.
 _DEFAULT_CHUNK_WORK = 50_000
 _MANIFEST = "manifest.json"
-_FORMAT = 1
+_FORMAT = 2
 _SUMMED_STATS = ("num_steps", "root_find_steps")
 
 
@@ -50,7 +52,10 @@ def run_chunked(
     `directory/chunk_0000c.npz` receives its saves (`ts`, the leaves of `ys` as
     `y_0, y_1, ...`, `energy`, `constraint`, `result`, and the `stats` as `stats_*`),
     written to a temporary file and renamed, so that a chunk file that exists is
-    complete. `chunk_steps` is a multiple of `save_every`, so the last save of a chunk
+    complete. Each chunk file also records what identifies it: the run's fingerprint
+    (a hash of the manifest below), its index and step range, a fingerprint of the state
+    it started from, and a checksum of its arrays. `chunk_steps` is a multiple of
+    `save_every`, so the last save of a chunk
     is its final state, the state the next chunk starts from. Chunk 0 keeps the initial
     save; the others leave out their first save, which is the previous chunk's last.
 
@@ -58,8 +63,14 @@ def run_chunked(
     (type and fields, functions by qualified name), fingerprints of `y0` and `args`,
     `dt`, `n_steps`, `save_every`, `chunk_steps`, the dtype and the batch size. A call
     whose run differs raises a `ValueError` naming what differs; otherwise the chunks on
-    disk are loaded and the run continues after the last of them. One process at a
-    time per directory.
+    disk are loaded and the run continues after the last of them. Each chunk is
+    verified as it is loaded: a file that cannot be read (truncated, empty), whose
+    arrays do not match its checksum (corrupted), that belongs to another run or to
+    another place in this one (copied or renamed), or that starts from another state
+    than the end of the chunk before it, is never used: a `RuntimeWarning` names the
+    file and the reason, and the chunk is computed again (it is derived data; its
+    recomputation is bit-identical to an uninterrupted run). A missing chunk is
+    computed again too. One process at a time per directory.
 
     **What a chunk boundary does.** Each chunk starts the method afresh from the saved
     state $(q, p)$: solver state (such as a root finder's starting guess) is not carried
@@ -82,11 +93,10 @@ def run_chunked(
     trajectory) is written like the others, so that a rerun reports the failure at once
     (delete `directory` to compute it again). With `throw=True` it raises a
     `RuntimeError` naming the chunk, its time span and the `nhjax.RESULTS` message. With
-    `throw=False` a single trajectory stops there: the `Solution` holds the saves up to
-    the end of that chunk, then `inf` (as diffrax fills saves never reached), and the
-    failure's code. A batch with `throw=False` runs on, as under
-    `jax.vmap(nhjax.integrate)`: a failed trajectory holds non-finite values and the
-    code of its first failure.
+    `throw=False` a single trajectory stops there: the `Solution` holds the saves before
+    the failure, then NaN, as `nhjax.integrate` does, and the failure's code. A batch
+    with `throw=False` runs on, as under `jax.vmap(nhjax.integrate)`: a failed
+    trajectory holds NaN from its failure on and the code of its first failure.
 
     **Arguments:** those of `nhjax.integrate` (`t0` is 0), and
 
@@ -101,8 +111,8 @@ def run_chunked(
     check_step_counts(n_steps, save_every)
     if isinstance(dt, jax.core.Tracer) or jnp.ndim(dt) != 0:
         raise ValueError("dt must be a concrete scalar: a chunked run cannot be traced.")
-    if not dt > 0:
-        raise ValueError(f"dt must be positive, got dt={dt}.")
+    check_step_size(dt)
+    check_args(args)
     n_steps, save_every = int(n_steps), int(save_every)
     y0 = jax.tree.map(jnp.asarray, y0)
     batch = _batch_size(system, y0, args)
@@ -121,22 +131,21 @@ def run_chunked(
     leaves, treedef = jax.tree.flatten(y0)
     dtype = jnp.result_type(*leaves)
     directory = pathlib.Path(directory)
-    _open_run(
-        directory,
-        dict(
-            format=_FORMAT,
-            system=_describe(system),
-            method=_describe(method),
-            initial_state=_fingerprint(y0),
-            args=_fingerprint(args),
-            dt=float(dt),
-            n_steps=n_steps,
-            save_every=save_every,
-            chunk_steps=chunk_steps,
-            dtype=str(dtype),
-            batch=batch,
-        ),
+    manifest = dict(
+        format=_FORMAT,
+        system=_describe(system),
+        method=_describe(method),
+        initial_state=_fingerprint(y0),
+        args=_fingerprint(args),
+        dt=float(dt),
+        n_steps=n_steps,
+        save_every=save_every,
+        chunk_steps=chunk_steps,
+        dtype=str(dtype),
+        batch=batch,
     )
+    _open_run(directory, manifest)
+    run = hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()[:16]
 
     n_chunks = math.ceil(n_steps / chunk_steps)
     time_axis = 0 if batch is None else 1
@@ -154,10 +163,13 @@ def run_chunked(
             first_step = index * chunk_steps
             length = min(chunk_steps, n_steps - first_step)
             path = directory / f"chunk_{index:05d}.npz"
+            identity = dict(
+                run=run, index=index, first_step=first_step, n_steps=length,
+                start=_fingerprint(list(state)),
+            )
             expected_saves = length // save_every + (index == 0)
-            if path.exists():
-                chunk = _load(path, expected_saves, time_axis)
-            else:
+            chunk = _load_verified(path, identity, expected_saves, time_axis)
+            if chunk is None:
                 # t0 = first_step * dt, exactly as nhjax.integrate spaces its steps.
                 t0 = dt * jnp.asarray(first_step, dtype=dtype)
                 solution = _run_chunk(
@@ -165,7 +177,8 @@ def run_chunked(
                     n_steps=length, save_every=save_every, batched=batch is not None,
                 )
                 chunk = _chunk_arrays(solution, keep_first=index == 0, time_axis=time_axis)
-                _write_atomically(path, lambda file: np.savez(file, **chunk))
+                stored = _with_identity(chunk, identity)
+                write_atomically(path, lambda file: np.savez(file, **stored))
             chunks.append(chunk)
             bar.update(length)
             failed = chunk["result"] != _SUCCESS
@@ -263,15 +276,66 @@ def _chunk_arrays(solution, *, keep_first, time_axis) -> dict[str, np.ndarray]:
     return chunk
 
 
-def _load(path, expected_saves, time_axis) -> dict[str, np.ndarray]:
-    with np.load(path) as data:
-        chunk = {name: data[name] for name in data.files}
-    if "ts" not in chunk or chunk["ts"].shape[time_axis] != expected_saves:
-        raise ValueError(
-            f"{path} does not hold the {expected_saves} saves this chunk of the run should "
-            "have, so it was not written by this run. Delete the directory to start over."
-        )
-    return chunk
+_IDENTITY = ("run", "index", "first_step", "n_steps", "start")
+
+
+def _checksum(arrays: dict[str, np.ndarray]) -> str:
+    """A hash of the names, dtypes, shapes and bytes of `arrays`."""
+    digest = hashlib.sha256()
+    for name in sorted(arrays):
+        array = np.asarray(arrays[name])
+        digest.update(f"{name}:{array.dtype.str}{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+def _with_identity(chunk: dict[str, np.ndarray], identity: dict) -> dict[str, np.ndarray]:
+    """The arrays written for a chunk: its saves and stats, what identifies it, and a
+    checksum of all of them."""
+    stored = dict(chunk, **{f"chunk_{key}": np.asarray(value) for key, value in identity.items()})
+    stored["checksum"] = np.asarray(_checksum(stored))
+    return stored
+
+
+def _load_verified(path: pathlib.Path, identity: dict, expected_saves: int, time_axis: int):
+    """The chunk in `path` if it exists and is the chunk `identity` describes; `None`
+    (after a warning naming the file and why, and deleting a bad file) if it must be
+    computed."""
+    if not path.exists():
+        return None
+    problem = None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            stored = {name: data[name] for name in data.files}
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile, zipfile.LargeZipFile) as error:
+        problem = f"cannot be read ({type(error).__name__}: {error})"
+    else:
+        checksum = stored.pop("checksum", None)
+        found = {key: stored.get(f"chunk_{key}") for key in _IDENTITY}
+        if checksum is None or any(value is None for value in found.values()):
+            problem = "is not a chunk file of this format"
+        elif str(checksum) != _checksum(stored):
+            problem = "does not match its checksum (its contents are corrupted)"
+        elif str(found["run"]) != identity["run"]:
+            problem = "belongs to another run"
+        elif (int(found["index"]), int(found["first_step"]), int(found["n_steps"])) != (
+            identity["index"], identity["first_step"], identity["n_steps"]
+        ):
+            problem = (
+                f"holds chunk {int(found['index'])} (steps {int(found['first_step'])} to "
+                f"{int(found['first_step']) + int(found['n_steps'])}), not chunk "
+                f"{identity['index']} (steps {identity['first_step']} to "
+                f"{identity['first_step'] + identity['n_steps']})"
+            )
+        elif str(found["start"]) != identity["start"]:
+            problem = "starts from another state than the end of the chunk before it"
+        elif "ts" not in stored or stored["ts"].shape[time_axis] != expected_saves:
+            problem = f"does not hold the {expected_saves} saves of this chunk"
+    if problem is None:
+        return {name: array for name, array in stored.items() if not name.startswith("chunk_")}
+    warnings.warn(f"{path} {problem}: not used; computing the chunk again.", RuntimeWarning, stacklevel=3)
+    path.unlink()
+    return None
 
 
 def _assemble(chunks, treedef, n_saved, time_axis) -> Solution:
@@ -279,7 +343,7 @@ def _assemble(chunks, treedef, n_saved, time_axis) -> Solution:
         array = np.concatenate([chunk[name] for chunk in chunks], axis=time_axis)
         missing = n_saved - array.shape[time_axis]
         if missing:  # a single trajectory that stopped at a failed chunk
-            padding = np.full((missing, *array.shape[1:]), np.inf, dtype=array.dtype)
+            padding = np.full((missing, *array.shape[1:]), np.nan, dtype=array.dtype)
             array = np.concatenate([array, padding])
         return jnp.asarray(array)
 
@@ -334,10 +398,10 @@ def _open_run(directory: pathlib.Path, manifest: dict) -> None:
         )
     else:
         text = json.dumps(manifest, indent=2) + "\n"
-        _write_atomically(path, lambda file: file.write(text.encode()))
+        write_atomically(path, lambda file: file.write(text.encode()))
 
 
-def _write_atomically(path: pathlib.Path, write) -> None:
+def write_atomically(path: pathlib.Path, write) -> None:
     """`write(file)` to a temporary file beside `path`, then rename it to `path`: a
     reader (or a rerun after a kill) sees the old file or the complete new one."""
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -346,10 +410,19 @@ def _write_atomically(path: pathlib.Path, write) -> None:
             write(file)
             file.flush()
             os.fsync(file.fileno())
+        # mkstemp makes the file private (0600); the result gets the permissions of any
+        # new file, those the umask leaves of 0666.
+        os.chmod(temporary, 0o666 & ~_umask())
         os.replace(temporary, path)
     except BaseException:
         os.unlink(temporary)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 class _Named:

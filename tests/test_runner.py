@@ -134,8 +134,8 @@ def test_killed_simulate_resumes_to_the_bits_of_an_uninterrupted_run(tmp_path):
 
 
 def _breaking_oscillator():
-    """x' = (x2, -x1) from x = (1, 0), with an H that is not differentiable once
-    x1 < -1/2 (t > 2.09): a discrete-gradient step fails there."""
+    """x' = (x2, -x1) from x = (1, 0), with an H that is NaN once x1 < -1/2
+    (t > 2.09): the step from t = 2 to 2.1 fails there, as a non-finite step."""
 
     def hamiltonian(x, args):
         return 0.5 * x @ x + 0.0 * jnp.sqrt(x[0] + 0.5)
@@ -155,13 +155,13 @@ def test_a_failed_chunk_stops_the_run_and_says_where(tmp_path):
             chunk_steps=10, progress=False, throw=throw,
         )
 
-    with pytest.raises(RuntimeError, match=r"Chunk 3 of 6 \(steps 20 to 30, t = 2 to 3\) failed: The implicit"):
+    with pytest.raises(RuntimeError, match=r"Chunk 3 of 6 \(steps 20 to 30, t = 2 to 3\) failed: A step produced a non-finite"):
         run(tmp_path / "raise", throw=True)
     stopped = run(tmp_path / "quiet", throw=False)
-    assert stopped.result == nh.RESULTS.root_find_not_converged
+    assert stopped.result == nh.RESULTS.nonfinite_step
     assert sorted(path.name for path in (tmp_path / "quiet").glob("chunk_*")) == [f"chunk_0000{i}.npz" for i in range(3)]
     assert stopped.ys.shape == (31, 2)
-    assert np.all(np.isfinite(stopped.ys[:11])) and np.all(np.isinf(stopped.ys[11:]))
+    assert np.all(np.isfinite(stopped.ys[:11])) and np.all(np.isnan(stopped.ys[11:]))
     np.testing.assert_allclose(stopped.ts[:11], 0.2 * np.arange(11), atol=1e-15)
     # The failed chunk is on disk: a rerun reports it from there.
     with pytest.raises(RuntimeError, match="chunk_00002.npz"):
@@ -170,7 +170,7 @@ def test_a_failed_chunk_stops_the_run_and_says_where(tmp_path):
     # In a batch the other trajectory goes on, as under jax.vmap(nh.integrate).
     batch = run(tmp_path / "batch", throw=False, y0=jnp.array([[1.0, 0.0], [0.3, 0.0]]))
     assert batch.ys.shape == (2, 31, 2)
-    assert np.asarray(batch.result == nh.RESULTS.root_find_not_converged).tolist() == [True, False]
+    assert np.asarray(batch.result == nh.RESULTS.nonfinite_step).tolist() == [True, False]
     assert np.asarray(batch.result == nh.RESULTS.successful).tolist() == [False, True]
     np.testing.assert_allclose(batch.ys[1, -1], [0.3 * np.cos(6.0), -0.3 * np.sin(6.0)], atol=1e-2)
 
