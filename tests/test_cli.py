@@ -1,6 +1,9 @@
+import os
 import pathlib
+import signal
 import subprocess
 import sys
+import time
 import types
 
 import jax
@@ -41,6 +44,9 @@ def test_simulate_writes_the_trajectory_with_energy_and_constraint_at_roundoff(t
     )
     assert run.returncode == 0, run.stderr
     assert out.exists() and not (tmp_path / "runs" / "gearbox.npz.chunks").exists()
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's private 0600
     with np.load(out) as saved:
         assert sorted(saved.files) == ["constraint", "energy", "p", "q", "ts"]
         ts, q, p, energy, constraint = (saved[name] for name in ("ts", "q", "p", "energy", "constraint"))
@@ -57,6 +63,52 @@ def test_simulate_writes_the_trajectory_with_energy_and_constraint_at_roundoff(t
     assert float(summary["max relative energy error"]) < 1e-13
     assert float(summary["max constraint error |A(q) dH/dp|"]) < 1e-13
     assert summary["result"] == "successful"
+
+
+def test_simulate_checks_the_output_path_before_any_work(tmp_path, capsys):
+    a_file = tmp_path / "afile"
+    a_file.write_text("not a directory")
+    a_directory = tmp_path / "existing"
+    a_directory.mkdir()
+    for out, message in [
+        (a_file / "x.npz", f"cannot write {a_file / 'x.npz'}: {a_file} is not a directory"),
+        (pathlib.Path("/proc/x.npz"), "cannot write /proc/x.npz: "),
+        (a_directory, f"{a_directory} is a directory; give the name of the .npz file to write"),
+    ]:
+        with pytest.raises(SystemExit) as exit:
+            main(["simulate", "gearbox", "--method", "sidla", "--dt", "0.1", "--t1", "1", "--out", str(out)])
+        assert exit.value.code == 2
+        assert f"argument --out: {message}" in capsys.readouterr().err, out
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["afile", "existing"]
+    assert list(a_directory.iterdir()) == []
+
+
+def test_a_run_that_blows_up_fails_with_a_message(tmp_path, capsys):
+    """Tsit5 at h = 3 on the gearbox overflows: the energy turns inf while the states
+    are still finite. That is a failure, not a run with an infinite energy error."""
+    out = tmp_path / "blown.npz"
+    code = main(["simulate", "gearbox", "--method", "tsit5", "--dt", "3", "--t1", "90", "--no-progress", "--out", str(out)])
+    assert code == 1
+    assert "failed: A step produced a non-finite state, energy or constraint residual" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_an_interrupt_ends_the_command_cleanly(tmp_path):
+    """Ctrl-C, whether it comes during the import, the compilation or the run: the exit
+    status of SIGINT (130) and one line, not a crash."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "nhjax", "simulate", "gearbox", "--method", "gonzalez-r", "--dt", "0.01",
+         "--t1", "100000", "--no-progress", "--out", str(tmp_path / "x.npz")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # A test run started in the background inherits an ignored SIGINT; a terminal's
+        # Ctrl-C comes to a process that has Python's handler.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    time.sleep(6)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert stderr.strip().endswith("nhjax: interrupted")
 
 
 def test_simulate_help_names_every_option_system_and_method():
