@@ -280,28 +280,38 @@ def main(argv=None) -> int:
     reproduce.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="show progress bars (default on)")
 
     arguments = parser.parse_args(argv)
-    # A warning (such as a chunk found corrupted and computed again) as one line.
-    warnings.formatwarning = lambda message, category, *rest: f"nhjax: warning: {message}\n"
     try:
-        if arguments.command == "demo":
-            if not (math.isfinite(arguments.dt) and arguments.dt > 0):
-                parser.error(f"--dt must be positive, got {arguments.dt}")
-            if arguments.steps < 1:
-                parser.error(f"--steps must be a positive integer, got {arguments.steps}")
-            return _demo(arguments)
-        if arguments.command == "reproduce":
-            return _reproduce(arguments)
-        n_steps = _checked_steps(simulate, arguments)
-        problem = _output_problem(_output_path(arguments))
-        if problem:
-            simulate.error(f"argument --out: {problem}")
-        return _simulate(arguments, n_steps)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return _run_command(arguments, parser, simulate)
     except KeyboardInterrupt:
         # Leave at once: unwinding the interpreter while XLA is compiling can crash it.
         # Finished chunks are on disk, and a rerun continues from them.
         print("\nnhjax: interrupted", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os._exit(130)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning (such as a chunk found corrupted and computed again) as one line."""
+    del category, filename, lineno, line
+    print(f"nhjax: warning: {message}", file=sys.stderr if file is None else file)
+
+
+def _run_command(arguments, parser, simulate) -> int:
+    if arguments.command == "demo":
+        if not (math.isfinite(arguments.dt) and arguments.dt > 0):
+            parser.error(f"--dt must be positive, got {arguments.dt}")
+        if arguments.steps < 1:
+            parser.error(f"--steps must be a positive integer, got {arguments.steps}")
+        return _demo(arguments)
+    if arguments.command == "reproduce":
+        return _reproduce(arguments)
+    n_steps = _checked_steps(simulate, arguments)
+    problem = _output_problem(_output_path(arguments))
+    if problem:
+        simulate.error(f"argument --out: {problem}")
+    return _simulate(arguments, n_steps)
 
 
 def _checked_steps(parser, arguments) -> int:

@@ -45,10 +45,10 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     root_find_not_converged = (
         "The implicit equations of a step were not solved to tolerance within the "
-        "method's `root_find_max_steps` iterations (or the iteration diverged), while "
-        "the system's functions stayed finite and A(q) kept its rank. Try a smaller "
-        "dt, or a larger `root_find_max_steps`. The saved states from the failed step "
-        "on are not finite."
+        "method's `root_find_max_steps` iterations (or the iteration diverged), with "
+        "the system's functions finite at every iterate and A(q) of full rank at the "
+        "last. Try a smaller dt, or a larger `root_find_max_steps`. The saved states "
+        "from the failed step on are not finite."
     )
     root_find_singular = (
         "The Jacobian of a step's implicit equations was singular. Try a smaller dt. "

@@ -77,7 +77,9 @@ def test_quartic_orders_energy_and_constraint(reproduction):
     assert methods["GONZALEZ"]["max_relative_energy_error_all_states"] < 1e-12
     assert methods["SI-DLA"]["max_relative_energy_error"] > 1e-4
     assert abs(methods["GONZALEZ"]["final_variance_over_h4"]) < 1e-18
-    assert 0.5 < methods["SI-DLA"]["variance_slope_relative_to_line"] < 2
+    # Within a factor 3, the verdict's criterion: a statistic of 50 chaotic trajectories
+    # (0.76 and 0.39 in runs that differ only in rounding).
+    assert 1 / 3 < methods["SI-DLA"]["variance_slope_relative_to_line"] < 3
 
 
 def test_sleigh_settles_as_proposition_4_1_says(reproduction):
