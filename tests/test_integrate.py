@@ -1,5 +1,7 @@
 """The time loop: saving, statistics, jit/vmap, compile-once, and bad input."""
 
+import pathlib
+
 import diffrax
 import equinox as eqx
 import jax
@@ -320,3 +322,13 @@ def test_adaptive_tolerances_follow_the_dtype():
     reference = nh.integrate_adaptive(GEARBOX.canonical, double, 10.0)
     for single, double in zip(solution.ys, reference.ys):
         np.testing.assert_allclose(single[-1], double[-1], atol=1e-3)
+
+
+def test_the_readme_lists_every_code_nhjax_sets():
+    """Each code nhjax defines, and the adaptive loop's max_steps_reached, has a row in
+    the README's Errors table."""
+    readme = (pathlib.Path(__file__).parents[1] / "README.md").read_text()
+    table = readme[readme.index("### Errors"):]
+    own = set(nh.RESULTS._name_to_item) - set(diffrax.RESULTS._name_to_item)
+    for name in sorted(own | {"successful", "max_steps_reached"}):
+        assert f"| `{name}` |" in table, name
