@@ -19,6 +19,8 @@ from ._runner import run_chunked as run_chunked
 from ._solver import (
     AbstractMethod as AbstractMethod,
     averaged_structure as averaged_structure,
+    Composition as Composition,
+    COMPOSITION_SCHEMES as COMPOSITION_SCHEMES,
     DiscreteGradient as DiscreteGradient,
     GonzalezF as GonzalezF,
     GonzalezR as GonzalezR,

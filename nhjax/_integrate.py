@@ -15,6 +15,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._results import first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, RESULTS
+from ._solver.base import AbstractMethodState
 from ._system import AbstractSystem
 
 
@@ -34,7 +35,9 @@ class Solution(eqx.Module):
         constraint residual is not finite is a failure), and every output of a failed
         trajectory has NaN derivatives.
     - `stats`: `num_steps` (steps taken), `root_find_steps` (root-finder iterations in
-        all), `max_root_find_steps` (most iterations in one step).
+        all), `max_root_find_steps` (most iterations in one step); for an
+        `nhjax.Composition`, also `substep_root_find_steps` and `failed_substep` (see
+        there).
     """
 
     ts: Float[Array, " n_saved"]
@@ -283,7 +286,12 @@ def _describe_failure(solution: Solution, dt, t0, n_steps) -> str:
     steps = int(solution.stats["num_steps"])
     if steps < n_steps:  # an nhjax method stops at the step that failed
         start, end = float(t0 + (steps - 1) * dt), float(t0 + steps * dt)
-        return f"nhjax.integrate failed at step {steps} of {n_steps} (t = {start:g} to {end:g}): {message}"
+        where = f"step {steps} of {n_steps} (t = {start:g} to {end:g})"
+        substep = int(solution.stats.get("failed_substep", -1))
+        if substep >= 0:
+            stages = solution.stats["substep_root_find_steps"].shape[-1]
+            where += f", substep {substep + 1} of {stages}"
+        return f"nhjax.integrate failed at {where}: {message}"
     first = int(np.argmax(bad))
     return (
         f"nhjax.integrate failed: the save at t = {float(solution.ts[first]):g} is not "
@@ -328,16 +336,14 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
         progress_meter=meter,
     )
     method_state = solution.solver_state
-    result = first_failure(
-        initial_result,
-        getattr(method_state, "failure", RESULTS.successful),
-        from_diffrax(solution.result),
-    )
-    stats = dict(
-        num_steps=solution.stats["num_accepted_steps"],
-        root_find_steps=getattr(method_state, "total_steps", None),
-        max_root_find_steps=getattr(method_state, "max_steps", None),
-    )
+    stats = dict(num_steps=solution.stats["num_accepted_steps"])
+    if isinstance(method_state, AbstractMethodState):
+        method_failure = method_state.failure
+        stats.update(method_state.statistics())
+    else:  # a diffrax solver, which reports through `solution.result` alone
+        method_failure = RESULTS.successful
+        stats.update(root_find_steps=None, max_root_find_steps=None)
+    result = first_failure(initial_result, method_failure, from_diffrax(solution.result))
     return _assemble(solution.ts, solution.ys, result, stats, (y0, dt, t0, args))
 
 

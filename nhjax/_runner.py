@@ -26,7 +26,7 @@ from ._results import RESULTS
 _DEFAULT_CHUNK_WORK = 50_000
 _MANIFEST = "manifest.json"
 _FORMAT = 2
-_SUMMED_STATS = ("num_steps", "root_find_steps")
+_SUMMED_STATS = ("num_steps", "root_find_steps", "substep_root_find_steps")
 
 
 def run_chunked(
@@ -361,6 +361,13 @@ def _assemble(chunks, treedef, n_saved, time_axis) -> Solution:
         if "stats_max_root_find_steps" in chunks[0]
         else None
     )
+    if "stats_failed_substep" in chunks[0]:  # a composition: the substep of the first failure
+        failed_substep = chunks[0]["stats_failed_substep"]
+        for chunk in chunks[1:]:
+            failed_substep = np.where(failed_substep < 0, chunk["stats_failed_substep"], failed_substep)
+        stats["failed_substep"] = jnp.asarray(failed_substep)
+    else:
+        stats.pop("substep_root_find_steps")
     n_leaves = treedef.num_leaves
     return Solution(
         ts=joined("ts"),

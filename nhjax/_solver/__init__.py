@@ -1,4 +1,9 @@
 from .base import AbstractMethod as AbstractMethod, MethodState as MethodState
+from .composition import (
+    Composition as Composition,
+    COMPOSITION_SCHEMES as COMPOSITION_SCHEMES,
+    CompositionState as CompositionState,
+)
 from .discrete_gradient import (
     averaged_structure as averaged_structure,
     DiscreteGradient as DiscreteGradient,

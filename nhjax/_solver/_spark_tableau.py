@@ -88,6 +88,25 @@ class SPARKTableau(eqx.Module):
     def stages(self) -> int:
         return len(self.b)
 
+    def is_symmetric(self) -> bool:
+        r"""Whether the method is self-adjoint (Hairer, Lubich & Wanner, *Geometric
+        Numerical Integration*, §V.2): $b_{s+1-j} = b_j$, $c_{s+1-i} = 1 - c_i$, each of
+        the three tableaux satisfies $a_{s+1-i,\,s+1-j} + a_{ij} = b_j$, and the stage
+        constraint equations are the same set with the stages reversed (the rows of
+        $\omega$ reversed span what the rows of $\omega$ span). To $10^{-12}$."""
+        b, c = np.asarray(self.b), np.asarray(self.c)
+        close = lambda x, y: bool(np.allclose(x, y, rtol=0.0, atol=1e-12))  # noqa: E731
+        tableaux = [np.asarray(getattr(self, name)) for name in ("velocity", "force", "constraint_force")]
+        weights = np.asarray(self.constraint_weights)
+        reversed_weights = np.concatenate([weights, weights[:, ::-1]])
+        rank = lambda matrix: np.linalg.matrix_rank(matrix, tol=1e-10)  # noqa: E731
+        return (
+            close(b, b[::-1])
+            and close(c, 1 - c[::-1])
+            and all(close(a + a[::-1, ::-1], np.broadcast_to(b, a.shape)) for a in tableaux)
+            and rank(reversed_weights) == rank(weights)
+        )
+
 
 def lobatto_coefficients(s: int) -> dict[str, np.ndarray]:
     r"""The $s$-stage Lobatto coefficients on $[0, 1]$ in float64 (Hairer & Wanner,

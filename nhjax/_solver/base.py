@@ -56,7 +56,18 @@ def _implicit_root_jvp(primals, tangents, *, residual):
     return root, -jnp.linalg.solve(jacobian, residual_tangent)
 
 
-class MethodState(eqx.Module):
+class AbstractMethodState(eqx.Module):
+    """What the loop reads from the diffrax solver state of an nhjax method after a run:
+    `failure`, the nhjax code of the step that failed, if one did, and `statistics()`,
+    the root-finder counts that `nhjax.Solution.stats` reports."""
+
+    failure: eqx.AbstractVar[RESULTS]
+
+    def statistics(self) -> dict[str, Array]:
+        raise NotImplementedError
+
+
+class MethodState(AbstractMethodState):
     """The diffrax solver state of an nhjax method: root-finder iterations so far, the
     nhjax code of the step that failed, if one did, and what the method carries from
     one step to the next (`AbstractMethod.initial_carry`)."""
@@ -70,6 +81,11 @@ class MethodState(eqx.Module):
         return MethodState(
             self.total_steps + steps, jnp.maximum(self.max_steps, steps), failure, carry
         )
+
+    def statistics(self) -> dict[str, Array]:
+        """`root_find_steps`, iterations in all, and `max_root_find_steps`, the most in
+        one step."""
+        return dict(root_find_steps=self.total_steps, max_root_find_steps=self.max_steps)
 
 
 def default_root_finder(dtype) -> optx.AbstractRootFinder:
@@ -163,9 +179,32 @@ class AbstractMethod(diffrax.AbstractSolver):
     def _root_finder(self, dtype) -> optx.AbstractRootFinder:
         return default_root_finder(dtype) if self.root_finder is None else self.root_finder
 
+    def is_symmetric(self) -> bool:
+        r"""Whether the method is its own adjoint, $\Phi_{-h} = \Phi_h^{-1}$ (time-symmetric),
+        as `nhjax.Composition` requires of the methods it composes. `False` unless a
+        method says otherwise."""
+        return False
+
+    def composition_obstacle(self) -> str | None:
+        """Why composing this method (`nhjax.Composition`) would not raise its order even
+        though it is symmetric, or `None` where nothing stands in the way."""
+        return None
+
+    def adjoint(self) -> "AbstractMethod | None":
+        r"""The adjoint method $\Phi^*_h = \Phi_{-h}^{-1}$, or `None` where it is not
+        available as a method: `self` for a symmetric method."""
+        return self if self.is_symmetric() else None
+
     def step(self, terms, t0, t1, y0, args, solver_state: MethodState, made_jump):
         del made_jump
         system, h = self.system_and_step(terms, t0, t1)
+        y1, solver_state, failure = self.advance(system, h, y0, args, solver_state)
+        return step_return(y0, y1, solver_state, failure)
+
+    def advance(self, system, h, y0, args, solver_state: MethodState) -> tuple[PyTree, MethodState, RESULTS]:
+        """One step of signed size `h` from `y0`: the new state (not yet replaced by NaN
+        on failure, see `step_return`), the method state after it, and the step's code
+        (`step_failure`)."""
         guess, data = self.setup(system, h, y0, args, solver_state.carry)
         # The root find runs on constants; its derivatives come from `_implicit_root`.
         guess, fixed_data = lax.stop_gradient(guess), _no_gradient(data)
@@ -196,25 +235,24 @@ class AbstractMethod(diffrax.AbstractSolver):
         root = _implicit_root(solution.value, data, residual=self.residual)
         y1, carry = self.complete(root, data)
         failure = step_failure(
-            evaluations_finite, _all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
+            evaluations_finite, all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
         )
-        state = solver_state.record(solution.stats["num_steps"], failure, carry)
-        return self.finish(y0, y1, state, failure)
-
-    @staticmethod
-    def finish(y0, y1, solver_state: MethodState, failure: RESULTS):
-        """The step's return tuple. A failed step returns NaN, never a plausible-looking
-        state, with NaN derivatives with respect to `y0` (`nan_where_failed`); diffrax
-        receives `breakdown`, and the nhjax code travels in `solver_state` (see the
-        module docstring)."""
-        failed = failure != RESULTS.successful
-        result = diffrax.RESULTS.where(failed, diffrax.RESULTS.breakdown, diffrax.RESULTS.successful)
-        y1 = nan_where_failed(failed, y1, y0)
-        dense_info = dict(y0=y0, y1=y1)
-        return y1, None, dense_info, solver_state, result
+        return y1, solver_state.record(solution.stats["num_steps"], failure, carry), failure
 
 
-def _all_finite(tree: PyTree) -> Array:
+def step_return(y0, y1, solver_state, failure: RESULTS):
+    """The return tuple of a diffrax step. A failed step returns NaN, never a
+    plausible-looking state, with NaN derivatives with respect to `y0`
+    (`nan_where_failed`); diffrax receives `breakdown`, and the nhjax code travels in
+    `solver_state` (see the module docstring)."""
+    failed = failure != RESULTS.successful
+    result = diffrax.RESULTS.where(failed, diffrax.RESULTS.breakdown, diffrax.RESULTS.successful)
+    y1 = nan_where_failed(failed, y1, y0)
+    dense_info = dict(y0=y0, y1=y1)
+    return y1, None, dense_info, solver_state, result
+
+
+def all_finite(tree: PyTree) -> Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)]))
 
 

@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import optimistix as optx
 
-from .._discrete_gradient import avf, gonzalez, itoh_abe
+from .._discrete_gradient import avf, gonzalez, itoh_abe, swap_arguments, SwappedArguments
 from .._system import SkewGradientSystem
 from .base import AbstractMethod, increment_scale
 from .chord import midpoint_gradient
@@ -24,8 +24,9 @@ def averaged_structure(structure, x, x1, args):
 
 
 def _underlying(function):
-    while isinstance(function, functools.partial):
-        function = function.func
+    """The function behind `functools.partial`s and swapped arguments."""
+    while isinstance(function, (functools.partial, SwappedArguments)):
+        function = function.func if isinstance(function, functools.partial) else function.function
     return function
 
 
@@ -65,6 +66,30 @@ class DiscreteGradient(AbstractMethod):
         del terms
         return {avf: 2, gonzalez: 2, itoh_abe: 1}.get(
             _underlying(self.discrete_gradient)
+        )
+
+    def is_symmetric(self) -> bool:
+        r"""True for the symmetric discrete gradients (`nhjax.avf`, `nhjax.gonzalez`,
+        $\bar\nabla H(x', x) = \bar\nabla H(x, x')$) with a symmetric $\tilde\Pi$
+        (`midpoint_structure`, `averaged_structure`); False otherwise, including
+        user-supplied functions whose symmetry nhjax cannot know."""
+        return _underlying(self.discrete_gradient) in (avf, gonzalez) and _underlying(
+            self.structure_approximation
+        ) in (midpoint_structure, averaged_structure)
+
+    def adjoint(self) -> "DiscreteGradient":
+        r"""The adjoint method $\Phi^*_h = \Phi_{-h}^{-1}$: (E-int) with the arguments of
+        $\bar\nabla H$ and $\tilde\Pi$ swapped, $(x' - x)/h = \tilde\Pi(x', x)\,
+        \bar\nabla H(x', x)$ (solve $\Phi_{-h}(x') = x$ for $x'$), itself a
+        discrete-gradient method: $\bar\nabla H(x', x)^T(x' - x) = H(x') - H(x)$.
+        `self` when the method is symmetric."""
+        if self.is_symmetric():
+            return self
+        return DiscreteGradient(
+            swap_arguments(self.discrete_gradient),
+            swap_arguments(self.structure_approximation),
+            self.root_finder,
+            self.root_find_max_steps,
         )
 
     def setup(self, system: SkewGradientSystem, h, y0, args, carry):

@@ -21,6 +21,8 @@ class _Carry(NamedTuple):
     signs: Array
     last_velocity: Array
     earlier_velocity: Array
+    last_step: Array
+    earlier_step: Array
 
 
 class _StepData(NamedTuple):
@@ -33,6 +35,7 @@ class _StepData(NamedTuple):
     args: Any
     energy: Array
     previous_velocity: Array
+    previous_step: Array
 
 
 class GonzalezR(AbstractMethod):
@@ -85,6 +88,9 @@ class GonzalezR(AbstractMethod):
         del terms
         return 2
 
+    def is_symmetric(self) -> bool:
+        return True
+
     def _reduced(self, system, signs, h):
         step = None
         if self.derivative == "central_difference":
@@ -93,13 +99,14 @@ class GonzalezR(AbstractMethod):
 
     def initial_carry(self, system: NonholonomicSystem, y0, args):
         r"""What a step hands the next: its $\zeta'$ and sign choices, and the mean
-        velocities $(\zeta' - \zeta)/h$ of the last two steps for the predictor (NaN
-        until there are any)."""
+        velocities $(\zeta' - \zeta)/h$ of the last two steps and their signed sizes
+        $h$, for the predictor (NaN until there are any)."""
         q, _ = y0
         signs = lax.stop_gradient(system.frame_signs(q, args))
         zeta = system.to_reduced(y0, args, signs)
         unknown = jnp.full_like(zeta, jnp.nan)
-        return _Carry(zeta, signs, unknown, unknown)
+        no_step = jnp.full((), jnp.nan, dtype=zeta.dtype)
+        return _Carry(zeta, signs, unknown, unknown, no_step, no_step)
 
     def setup(self, system: NonholonomicSystem, h, y0, args, carry):
         # A step starts from the previous step's zeta' itself, not from
@@ -112,22 +119,32 @@ class GonzalezR(AbstractMethod):
         continues = jnp.all(signs == carry.signs) & jnp.all(carry.zeta[: q.shape[0]] == q)
         zeta = jnp.where(continues, carry.zeta, system.to_reduced(y0, args, signs))
         reduced = self._reduced(system, signs, h)
-        # The predictor: the mean velocity of the last step extrapolated linearly from
-        # the two before, an O(h^2) error in the velocity, so the guess is O(h^3) from
+        # The predictor: the mean velocity of this step extrapolated linearly from those
+        # of the two before, an O(h^2) error in the velocity, so the guess is O(h^3) from
         # the root; otherwise (the first two steps, a restart, a change of signs, in
         # whose frame the carried rho-velocities mean something else) explicit Euler,
         # O(h^2). It saves the field evaluation of Euler and some iterations; the root
-        # does not depend on it.
-        extrapolates = continues & jnp.all(jnp.isfinite(carry.earlier_velocity))
+        # does not depend on it. A step's mean velocity is the velocity at its
+        # midpoint to O(h^2), and the midpoints of steps of signed sizes h'', h', h are
+        # (h'' + h')/2 and (h' + h)/2 apart: with equal steps the weights are (2, -1);
+        # with the unequal and negative substeps of a composition (`nhjax.Composition`)
+        # they follow the sizes, and where the two earlier midpoints (nearly) coincide,
+        # so that the line through them is ill-determined, Euler is used.
+        reach = (h + carry.last_step) / (carry.last_step + carry.earlier_step)
+        extrapolates = (
+            continues & jnp.all(jnp.isfinite(carry.earlier_velocity)) & (jnp.abs(reach) <= 4)
+        )
         velocity = lax.cond(
             extrapolates,
-            lambda: 2 * carry.last_velocity - carry.earlier_velocity,
+            lambda: carry.last_velocity + reach * (carry.last_velocity - carry.earlier_velocity),
             lambda: reduced.vf(zeta, args),
         )
         scale = increment_scale(zeta)
         guess = h * velocity / scale
         previous = jnp.where(continues, carry.last_velocity, jnp.nan)
-        return guess, _StepData(reduced, zeta, h, scale, args, reduced.hamiltonian(zeta, args), previous)
+        previous_step = jnp.where(continues, carry.last_step, jnp.nan)
+        data = _StepData(reduced, zeta, h, scale, args, reduced.hamiltonian(zeta, args), previous, previous_step)
+        return guess, data
 
     def residual(self, u, data, correction: bool = True):
         """`correction=False`: the residual with the midpoint gradient alone, for the
@@ -193,5 +210,13 @@ class GonzalezR(AbstractMethod):
         system, signs = data.reduced.system, data.reduced.signs
         zeta1 = zeta + scale * u
         y1 = system.from_reduced(zeta1, args, signs)
-        velocity = lax.stop_gradient(scale * u / data.h)
-        return y1, _Carry(zeta1, signs, velocity, lax.stop_gradient(data.previous_velocity))
+        # The predictor's data carries no derivatives; zeta' does: the next step
+        # starts from it.
+        return y1, _Carry(
+            zeta=zeta1,
+            signs=signs,
+            last_velocity=lax.stop_gradient(scale * u / data.h),
+            earlier_velocity=lax.stop_gradient(data.previous_velocity),
+            last_step=lax.stop_gradient(jnp.asarray(data.h, dtype=zeta.dtype)),
+            earlier_step=lax.stop_gradient(data.previous_step),
+        )

@@ -79,6 +79,9 @@ class IDLA(AbstractMethod):
         del terms
         return 2
 
+    def is_symmetric(self) -> bool:
+        return True
+
     def initial_carry(self, system: NonholonomicSystem, y0, args):
         return system.multiplier(y0, args)
 

@@ -159,6 +159,9 @@ class SIDLA(AbstractMethod):
         del terms
         return 2
 
+    def is_symmetric(self) -> bool:
+        return True
+
     def metric_is_constant(self, system: NonholonomicSystem, y0, args) -> bool:
         """Whether a step takes the $k$-unknown path (see `constant_metric`)."""
         if self.constant_metric is not None:

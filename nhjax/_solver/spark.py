@@ -102,6 +102,10 @@ class SPARK(AbstractMethod):
         del terms
         return self.tableau.order
 
+    def is_symmetric(self) -> bool:
+        """Whether the tableau is self-adjoint (`SPARKTableau.is_symmetric`)."""
+        return self.tableau.is_symmetric()
+
     def _coefficients(self, dtype):
         t = self.tableau
         return tuple(
