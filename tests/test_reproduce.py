@@ -26,6 +26,8 @@ SMALL = dataclasses.replace(
     work_step_sizes=(0.1, 0.05, 0.025),
     work_tolerances=(1e-6, 1e-9),
     work_repeats=1,
+    work_compositions=("GONZALEZ order 4",),
+    work_composition_step_sizes=(0.25, 0.125, 0.0625),
 )
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -111,7 +113,7 @@ def test_work_precision(reproduction):
     step size, Dopri8's error falling with its tolerance."""
     _, results = reproduction
     methods = results["fig4"]["methods"]
-    assert set(methods) == {"SI-DLA", "GONZALEZ", "Dopri8 (adaptive)"}
+    assert set(methods) == {"SI-DLA", "GONZALEZ", "GONZALEZ order 4", "Dopri8 (adaptive)"}
     for entry in methods.values():
         assert len(entry["wall_time_s"]) == len(entry["settings"]) and not entry["failed"]
         assert all(seconds > 0 for seconds in entry["wall_time_s"])
@@ -120,6 +122,32 @@ def test_work_precision(reproduction):
     assert min(methods["SI-DLA"]["energy_error"]) > 1e-6
     dopri8 = methods["Dopri8 (adaptive)"]["solution_error"]
     assert dopri8[1] < 1e-2 * dopri8[0]  # tolerances 1e-6 and 1e-9
+    composed = methods["GONZALEZ order 4"]
+    assert max(composed["energy_error"]) < 1e-13
+    assert 3.7 <= composed["fitted_order"] <= 4.6
+
+
+def test_work_precision_names_the_cheapest_runs(reproduction):
+    """At each target error: the cheapest run of all those that reach it, and the
+    cheapest energy-exact one (recomputed here from the runs), in results and report."""
+    out, results = reproduction
+    methods = results["fig4"]["methods"]
+    cheapest = results["fig4"]["cheapest_at_solution_error"]
+    assert list(cheapest) == ["0.001", "1e-06", "1e-09"]
+    exact = ("GONZALEZ", "GONZALEZ order 4")
+    for target, row in cheapest.items():
+        runs = [(seconds, name) for name, entry in methods.items()
+                for seconds, error in zip(entry["wall_time_s"], entry["solution_error"]) if error <= float(target)]
+        if not runs:
+            assert row["overall"] is None
+            continue
+        assert (row["overall"]["wall_time_s"], row["overall"]["method"]) == min(runs)
+        exact_runs = [run for run in runs if run[1] in exact]
+        if exact_runs:
+            assert (row["energy_exact"]["wall_time_s"], row["energy_exact"]["method"]) == min(exact_runs)
+            assert row["energy_exact_over_overall"] >= 1
+    report = (out / "report.md").read_text()
+    assert "| error at t = 10 | cheapest run | cheapest energy-exact run | ratio |" in report
 
 
 def test_an_interrupted_reproduction_resumes_to_the_same_numbers(reproduction, tmp_path):

@@ -47,7 +47,23 @@ METHODS = {
     ),
     "Tsit5": Method(diffrax.Tsit5(), False, "C7", "Tsit5 at fixed steps on the index-1 ODE (non-geometric)"),
 }
+# Beyond the paper: the symmetric compositions (`nhjax.Composition`) of GONZALEZ-R and of
+# GONZALEZ on the reduced form, by name, with their orders.
+_COMPOSITION_COLOURS = {"GONZALEZ-R": ("navy", "teal", "purple"), "GONZALEZ": ("C8", "C9", "k")}
+COMPOSITIONS = {f"{name} order {order}": order for name in _COMPOSITION_COLOURS for order in (4, 6, 8)}
+METHODS.update({
+    f"{name} order {order}": Method(
+        nh.Composition(METHODS[name].solver, order),
+        METHODS[name].adapted,
+        colour,
+        f"{METHODS[name].description}, composed to order {order} (nhjax.Composition)",
+    )
+    for name, colours in _COMPOSITION_COLOURS.items()
+    for order, colour in zip((4, 6, 8), colours)
+})
 DISCRETE_GRADIENT_METHODS = ("AVF", "GONZALEZ", "GONZALEZ-R", "GONZALEZ-F")
+# Every method whose energy is exact to roundoff.
+ENERGY_EXACT_METHODS = DISCRETE_GRADIENT_METHODS + tuple(COMPOSITIONS)
 EPS = float(np.finfo(np.float64).eps)
 # Enough for the runs to t = 10; a constant, so that it never causes a recompilation.
 _MAX_STEPS = 1_000_000

@@ -9,7 +9,7 @@ class Sizes:
     """Every size and setting the experiments take from outside.
 
     - `seed`: the key for the random initial states (Figures 1 and 3).
-    - `quartic_methods`: the methods of Figure 1, by name (see `_methods.METHODS`).
+    - `quartic_methods`: the methods of Figure 1, by name (see `_common.METHODS`).
     - `order_step_sizes`: Figure 1(a)'s step sizes, each dividing t = 10.
     - `ensemble_count`, `ensemble_t1`, `ensemble_save_every`, `ensemble_chunk_steps`:
         Figure 1(d)'s batch of states, run at h = 0.1 to `ensemble_t1`.
@@ -19,6 +19,9 @@ class Sizes:
     - `work_methods`, `work_step_sizes`, `work_tolerances`, `work_repeats`: Figure 4's
         fixed-step methods and their step sizes, Dopri8's tolerances, and how many timed
         runs the median is taken over.
+    - `work_compositions`, `work_composition_step_sizes`: Figure 4's compositions of
+        order 4, 6 and 8 (see `_common.COMPOSITIONS`) and their step sizes.
+    - `work_targets`: the solution errors at which Figure 4 names the cheapest runs.
     """
 
     seed: int
@@ -37,6 +40,9 @@ class Sizes:
     work_step_sizes: tuple[float, ...]
     work_tolerances: tuple[float, ...]
     work_repeats: int
+    work_compositions: tuple[str, ...]
+    work_composition_step_sizes: tuple[float, ...]
+    work_targets: tuple[float, ...]
 
 
 FULL = Sizes(
@@ -59,6 +65,12 @@ FULL = Sizes(
     work_step_sizes=(0.2, 0.1, 0.05, 0.025, 0.0125),
     work_tolerances=(1e-4, 1e-6, 1e-8, 1e-10, 1e-12),
     work_repeats=5,
+    work_compositions=(
+        "GONZALEZ-R order 4", "GONZALEZ-R order 6", "GONZALEZ-R order 8",
+        "GONZALEZ order 4", "GONZALEZ order 6", "GONZALEZ order 8",
+    ),
+    work_composition_step_sizes=(0.5, 0.25, 0.2, 0.125, 0.1, 0.0625, 0.05, 0.025),
+    work_targets=(1e-3, 1e-6, 1e-9),
 )
 
 # Compilation, not stepping, is most of a quick run: the same programs as FULL, shorter

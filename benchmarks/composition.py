@@ -1,0 +1,206 @@
+"""Work against precision with compositions: how cheaply an energy-exact nhjax run reaches
+a solution error, against Dopri8 with adaptive steps, both timed in this process.
+
+Problems: the n = 3 chaotic quartic (from the state of angle 0.7) and the gearbox (random
+state of key 0), to t = 10. Runs:
+
+- energy-exact: GONZALEZ-R and its compositions of order 4, 6 and 8 (`nhjax.Composition`)
+  in canonical coordinates; on the quartic also DiscreteGradient(gonzalez) and its
+  compositions on the reduced form (errors measured on (q, p) after mapping back);
+- Tsit5 at fixed steps, and Dopri8 with adaptive steps (`nhjax.integrate_adaptive`'s
+  solver) over a sweep of tolerances.
+
+Fixed-step runs use step sizes t1/N for a geometric sequence of N (one compilation per
+method: the step size is traced). Each time is the median of `--repeats` timings after a
+warm-up. Error: max-norm distance at t = 10 to a reference, Dopri8 at rtol = atol = 1e-15
+(its distance to the order-8 composition at the smallest step is reported).
+
+For each target error (1e-3, 1e-6, 1e-8, 1e-9, 1e-10): the cheapest run overall, the
+cheapest energy-exact run and the cheapest Dopri8 run that reach it, and the ratio of
+the energy-exact time to Dopri8's. Also each scheme's error constant C in
+err = C h^p, measured on the quartic's reduced form, for every scheme of
+`nhjax.COMPOSITION_SCHEMES`.
+
+Results: benchmarks/results/composition.json.
+Run: python benchmarks/composition.py [--repeats 5] [--quick]
+"""
+
+import argparse
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+jax.config.update("jax_enable_x64", True)
+
+import nhjax as nh  # noqa: E402
+from _timing import write  # noqa: E402
+from nhjax._reproduce._common import median_time, run_adaptive, run_to  # noqa: E402
+
+
+T1 = 10.0
+TARGETS = (1e-3, 1e-6, 1e-8, 1e-9, 1e-10)
+TOLERANCES = tuple(10.0 ** -k for k in np.arange(4, 14.5, 0.5))
+# Steps to t = 10 for each order: from where the error is about 1e-2 to below 1e-10.
+STEP_COUNTS = {
+    2: (50, 100, 200, 400, 800, 1600, 3200, 6400, 12800),
+    4: (20, 25, 32, 40, 50, 64, 80, 100, 125, 160, 200, 250, 320, 400, 500, 640),
+    6: (16, 20, 25, 32, 40, 50, 64, 80, 100, 125, 160, 200),
+    8: (10, 16, 20, 25, 32, 40, 50, 64, 80, 100, 125),
+}
+TSIT5_STEPS = (50, 100, 200, 400, 800, 1600, 3200)
+
+
+def _problems():
+    quartic = nh.examples.chaotic_quartic(3)
+    gearbox = nh.examples.gearbox()
+    x0 = quartic.initial_state(0.7)
+    return {
+        "quartic_n3": dict(system=quartic.canonical, y0=quartic.from_adapted(x0),
+                           reduced=(quartic.adapted, x0, quartic.from_adapted)),
+        "gearbox": dict(system=gearbox.canonical, y0=gearbox.random_initial_state(jax.random.key(0)), reduced=None),
+    }
+
+
+def _error(y, reference) -> float:
+    return max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(y, reference))
+
+
+def _sweep(system, method, y0, counts, reference, to_canonical, repeats):
+    """(steps, h, wall time s, error) for each step count, one compilation."""
+    rows = []
+    for n in counts:
+        h = jnp.asarray(T1 / n)
+
+        def function(h=h):
+            return run_to(system, method, y0, h, jnp.asarray(T1))
+
+        final, succeeded, steps = function()
+        if not bool(succeeded) or int(steps) != n:
+            rows.append(dict(steps=n, failed=True))
+            continue
+        seconds = median_time(function, repeats)
+        rows.append(dict(steps=n, h=T1 / n, wall_time_s=seconds, error=_error(to_canonical(final), reference), failed=False))
+    return rows
+
+
+def _identity(y):
+    return y
+
+
+def _dopri8(system, y0, reference, repeats):
+    rows = []
+    for tolerance in TOLERANCES:
+        def function(tolerance=tolerance):
+            return run_adaptive(system, y0, jnp.asarray(T1), jnp.asarray(tolerance))
+
+        final, succeeded, steps = function()
+        if not bool(succeeded):
+            rows.append(dict(tolerance=tolerance, failed=True))
+            continue
+        rows.append(dict(tolerance=tolerance, steps=int(steps), wall_time_s=median_time(function, repeats),
+                         error=_error(final, reference), failed=False))
+    return rows
+
+
+def _cheapest(rows, target):
+    reached = [row for row in rows if not row["failed"] and row["error"] <= target]
+    return min(reached, key=lambda row: row["wall_time_s"]) if reached else None
+
+
+def _error_constant(rows, order):
+    """C = err / h^p at the smallest step whose error is above 1e-12 (the asymptotic
+    regime, above roundoff)."""
+    usable = [row for row in rows if not row["failed"] and row["error"] > 1e-12]
+    if not usable:
+        return None
+    row = min(usable, key=lambda row: row["h"])
+    return row["error"] / row["h"] ** order
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--quick", action="store_true", help="every other step count, 3 repeats")
+    options = parser.parse_args()
+    if options.quick:
+        options.repeats = 3
+    thin = (lambda counts: counts[::2]) if options.quick else (lambda counts: counts)
+    results = dict(t1=T1, repeats=options.repeats, targets=list(TARGETS), problems={})
+    for problem_name, problem in _problems().items():
+        system, y0 = problem["system"], problem["y0"]
+        reference_run = nh.integrate_adaptive(system, y0, T1, rtol=1e-15, atol=1e-15, max_steps=10_000_000)
+        reference = jax.tree.map(lambda leaf: leaf[-1], reference_run.ys)
+        runs = {}
+        exact = []
+        candidates = [("GONZALEZ-R", nh.GonzalezR(), system, y0, _identity)]
+        if problem["reduced"] is not None:
+            reduced, x0, to_canonical = problem["reduced"]
+            candidates.append(("GONZALEZ (reduced form)", nh.DiscreteGradient(), reduced, x0, to_canonical))
+        for base_name, base, run_system, start, to_canonical in candidates:
+            for order in (2, 4, 6, 8):
+                method = base if order == 2 else nh.Composition(base, order)
+                name = base_name if order == 2 else f"{base_name}, order {order}"
+                runs[name] = _sweep(run_system, method, start, thin(STEP_COUNTS[order]), reference, to_canonical, options.repeats)
+                exact.append(name)
+                print(f"{problem_name:10s} {name:34s} " + "  ".join(
+                    f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
+                    for row in runs[name] if not row["failed"]), flush=True)
+        runs["Tsit5 (fixed steps)"] = _sweep(system, diffrax.Tsit5(), y0, thin(TSIT5_STEPS), reference, _identity, options.repeats)
+        runs["Dopri8 (adaptive)"] = _dopri8(system, y0, reference, options.repeats)
+        print(f"{problem_name:10s} Dopri8 " + "  ".join(
+            f"tol={row['tolerance']:.0e}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
+            for row in runs["Dopri8 (adaptive)"] if not row["failed"]), flush=True)
+        most_accurate = runs["GONZALEZ-R, order 8"][-1]
+        summary = {}
+        for target in TARGETS:
+            def best(names):
+                found = [(name, _cheapest(runs[name], target)) for name in names]
+                found = [(name, row) for name, row in found if row is not None]
+                return min(found, key=lambda item: item[1]["wall_time_s"]) if found else (None, None)
+
+            overall = best(list(runs))
+            energy_exact = best(exact)
+            dopri8 = best(["Dopri8 (adaptive)"])
+            ratio = (energy_exact[1]["wall_time_s"] / dopri8[1]["wall_time_s"]
+                     if energy_exact[1] is not None and dopri8[1] is not None else None)
+            summary[f"{target:.0e}"] = dict(
+                cheapest=dict(method=overall[0], run=overall[1]),
+                cheapest_energy_exact=dict(method=energy_exact[0], run=energy_exact[1]),
+                cheapest_dopri8=dopri8[1],
+                energy_exact_over_dopri8=ratio,
+            )
+            describe = lambda item: "none" if item[0] is None else f"{item[0]} ({item[1]['wall_time_s'] * 1e3:.2f} ms)"  # noqa: E731
+            print(f"{problem_name:10s} error {target:.0e}: cheapest {describe(overall)}; energy-exact "
+                  f"{describe(energy_exact)}; Dopri8 {describe(dopri8)}; ratio "
+                  + (f"{ratio:.2f}" if ratio is not None else "n/a"), flush=True)
+        results["problems"][problem_name] = dict(
+            runs=runs, summary=summary,
+            reference_check=dict(
+                note="distance of the reference (Dopri8 at 1e-15) to GONZALEZ-R order 8 at its smallest step",
+                distance=most_accurate.get("error"),
+            ),
+        )
+
+    # Error constants of every scheme, on the quartic's reduced form.
+    quartic = nh.examples.chaotic_quartic(3)
+    x0 = quartic.initial_state(0.7)
+    reduced_reference = nh.integrate_adaptive(quartic.adapted, x0, T1, rtol=1e-15, atol=1e-15, max_steps=10_000_000)
+    reduced_reference = (reduced_reference.ys[-1],)
+    constants = {}
+    for scheme, definition in nh.COMPOSITION_SCHEMES.items():
+        order = definition["order"]
+        method = nh.Composition(nh.DiscreteGradient(), **definition)
+        rows = _sweep(quartic.adapted, method, x0, STEP_COUNTS[order][::2], reduced_reference, lambda x: (x,), options.repeats)
+        constants[scheme] = dict(order=order, stages=len(definition["coefficients"]),
+                                 error_constant=_error_constant(rows, order), runs=rows)
+        print(f"scheme {scheme:16s} order {order} stages {constants[scheme]['stages']:2d} "
+              f"C = {constants[scheme]['error_constant']:.3g}", flush=True)
+    results["error_constants_quartic_reduced_form"] = constants
+    write(results, "benchmarks/results/composition.json")
+
+
+if __name__ == "__main__":
+    main()
