@@ -33,6 +33,18 @@ def test_one_device_equals_vmap_of_integrate():
     assert jnp.all(sharded.stats["root_find_steps"] == reference.stats["root_find_steps"])
 
 
+def test_compositions_run_as_ensembles_with_their_substep_statistics():
+    quartic = nh.examples.chaotic_quartic(3)
+    states = quartic.random_initial_states(jax.random.key(2), 3)
+    method = nh.Composition(nh.DiscreteGradient(), 4)
+    sharded = nh.integrate_ensemble(quartic.adapted, method, states, 0.1, 20, save_every=10)
+    reference = jax.vmap(lambda x: nh.integrate(quartic.adapted, method, x, 0.1, 20, save_every=10))(states)
+    assert _max_difference(sharded.ys, reference.ys) <= 1e-13
+    assert sharded.stats["substep_root_find_steps"].shape == (3, 5)
+    assert jnp.all(sharded.stats["substep_root_find_steps"] == reference.stats["substep_root_find_steps"])
+    assert jnp.all(sharded.stats["failed_substep"] == -1)
+
+
 def test_parameters_reach_every_trajectory():
     """`args` with array and float leaves (the sleigh's J, a, m) is shared by the batch:
     changing J changes every trajectory as it changes `integrate`'s."""
