@@ -263,6 +263,33 @@ def test_failed_substep_is_reported_and_named():
         nh.integrate(system, method, y0, 0.1, 40)
 
 
+def test_a_failed_composed_trajectory_has_nan_derivatives_and_spares_its_neighbour():
+    """A skew-gradient system whose potential sqrt(1 - x2) pushes x2 past 1, where H is
+    NaN: under vmap, the failing trajectory's code is nonfinite_step, its derivatives
+    with respect to y0 and dt are NaN, and its neighbour's are finite."""
+
+    def hamiltonian(x, args):
+        return 0.5 * (x[0] ** 2 + x[1] ** 2 + x[3] ** 2) + jnp.sqrt(1.0 - x[2])
+
+    def structure(x, args):
+        return jnp.array([[0.0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1], [0, 0, -1, 0]], dtype=x.dtype)
+
+    system = nh.SkewGradientSystem(hamiltonian, structure)
+    method = nh.Composition(nh.DiscreteGradient(), 4)
+
+    def loss(x0, dt):
+        solution = nh.integrate(system, method, x0, dt, 40, throw=False)
+        return solution.ys[0, 0] + solution.ys[-1, 0], solution.result
+
+    starts = jnp.array([[0.3, 0.1, -3.0, -0.5], [0.3, 0.1, 0.5, 1.0]])
+    (_, codes), _ = jax.vmap(lambda x: (loss(x, 0.1), None))(starts)
+    assert (codes == nh.RESULTS.successful).tolist() == [True, False]
+    assert bool((codes == nh.RESULTS.nonfinite_step)[1])
+    gradient = jax.jit(jax.vmap(jax.grad(lambda x, dt: loss(x, dt)[0], argnums=(0, 1)), in_axes=(0, None)))(starts, 0.1)
+    assert bool(jnp.all(jnp.isfinite(gradient[0][0]))) and bool(jnp.isfinite(gradient[1][0]))
+    assert bool(jnp.all(jnp.isnan(gradient[0][1]))) and bool(jnp.isnan(gradient[1][1]))
+
+
 def test_float32():
     y0 = GEARBOX.random_initial_state(jax.random.key(0))
     check_float32(nh.Composition(nh.GonzalezR(), 4), GEARBOX, y0)
