@@ -132,7 +132,10 @@ class AbstractMethod(diffrax.AbstractSolver):
       by default `None`).
 
     Subclasses set `root_finder` (`None`: `default_root_finder` for the state's dtype)
-    and `root_find_max_steps`.
+    and `root_find_max_steps`, and say whether the method is symmetric
+    (`is_symmetric`, `adjoint`, `composition_obstacle`: what `nhjax.Composition`
+    needs). `advance(system, h, y0, args, state)` takes one step of signed size `h`;
+    `step` is diffrax's interface to it.
     """
 
     interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
