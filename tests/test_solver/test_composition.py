@@ -151,6 +151,16 @@ def test_fitted_order_against_exact_and_reference_solutions(case):
     assert low <= fitted_order(step_sizes, errors) <= high, errors
 
 
+def test_the_averaged_vector_field_method_composes():
+    """DiscreteGradient(avf), symmetric like Gonzalez's: order 4 on Suslov's exact
+    solution."""
+    rho0 = SUSLOV.initial_state(omega1=1.0, omega2=0.5)
+    step_sizes = (0.5, 0.25, 0.125)
+    method = nh.Composition(nh.DiscreteGradient(nh.avf), 4)
+    errors = _errors(SUSLOV.adapted, method, rho0, 10.0, step_sizes, SUSLOV.exact_solution(10.0, rho0), SUSLOV.args)
+    assert 3.7 <= fitted_order(step_sizes, errors) <= 4.6, errors
+
+
 def test_itoh_abe_is_symmetrised_with_its_adjoint_then_composed():
     r"""Itoh-Abe is first order and not symmetric; $\Phi_{h/2}\circ\Phi^*_{h/2}$ is
     symmetric and second order, and its composition of order 4 has order 4. Energy
