@@ -120,15 +120,11 @@ def _error_constant(rows, order):
     return row["error"] / row["h"] ** order
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--quick", action="store_true", help="every other step count, 3 repeats")
-    options = parser.parse_args()
-    if options.quick:
-        options.repeats = 3
-    thin = (lambda counts: counts[::2]) if options.quick else (lambda counts: counts)
-    results = dict(t1=T1, repeats=options.repeats, targets=list(TARGETS), problems={})
+def work_precision(repeats: int, quick: bool = False) -> dict:
+    """Every run above on both problems, the cheapest runs at each target, and the
+    schemes' error constants; prints as it goes."""
+    thin = (lambda counts: counts[::2]) if quick else (lambda counts: counts)
+    results = dict(t1=T1, repeats=repeats, targets=list(TARGETS), problems={})
     for problem_name, problem in _problems().items():
         system, y0 = problem["system"], problem["y0"]
         reference_run = nh.integrate_adaptive(system, y0, T1, rtol=1e-15, atol=1e-15, max_steps=10_000_000)
@@ -143,63 +139,102 @@ def main():
             for order in (2, 4, 6, 8):
                 method = base if order == 2 else nh.Composition(base, order)
                 name = base_name if order == 2 else f"{base_name}, order {order}"
-                runs[name] = _sweep(run_system, method, start, thin(STEP_COUNTS[order]), reference, to_canonical, options.repeats)
+                runs[name] = _sweep(run_system, method, start, thin(STEP_COUNTS[order]), reference, to_canonical, repeats)
                 exact.append(name)
                 print(f"{problem_name:10s} {name:34s} " + "  ".join(
                     f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
                     for row in runs[name] if not row["failed"]), flush=True)
-        runs["Tsit5 (fixed steps)"] = _sweep(system, diffrax.Tsit5(), y0, thin(TSIT5_STEPS), reference, _identity, options.repeats)
-        runs["Dopri8 (adaptive)"] = _dopri8(system, y0, reference, options.repeats)
+        runs["Tsit5 (fixed steps)"] = _sweep(system, diffrax.Tsit5(), y0, thin(TSIT5_STEPS), reference, _identity, repeats)
+        runs["Dopri8 (adaptive)"] = _dopri8(system, y0, reference, repeats)
         print(f"{problem_name:10s} Dopri8 " + "  ".join(
             f"tol={row['tolerance']:.0e}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
             for row in runs["Dopri8 (adaptive)"] if not row["failed"]), flush=True)
         most_accurate = runs["GONZALEZ-R, order 8"][-1]
-        summary = {}
-        for target in TARGETS:
-            def best(names):
-                found = [(name, _cheapest(runs[name], target)) for name in names]
-                found = [(name, row) for name, row in found if row is not None]
-                return min(found, key=lambda item: item[1]["wall_time_s"]) if found else (None, None)
-
-            overall = best(list(runs))
-            energy_exact = best(exact)
-            dopri8 = best(["Dopri8 (adaptive)"])
-            ratio = (energy_exact[1]["wall_time_s"] / dopri8[1]["wall_time_s"]
-                     if energy_exact[1] is not None and dopri8[1] is not None else None)
-            summary[f"{target:.0e}"] = dict(
-                cheapest=dict(method=overall[0], run=overall[1]),
-                cheapest_energy_exact=dict(method=energy_exact[0], run=energy_exact[1]),
-                cheapest_dopri8=dopri8[1],
-                energy_exact_over_dopri8=ratio,
-            )
-            describe = lambda item: "none" if item[0] is None else f"{item[0]} ({item[1]['wall_time_s'] * 1e3:.2f} ms)"  # noqa: E731
-            print(f"{problem_name:10s} error {target:.0e}: cheapest {describe(overall)}; energy-exact "
-                  f"{describe(energy_exact)}; Dopri8 {describe(dopri8)}; ratio "
-                  + (f"{ratio:.2f}" if ratio is not None else "n/a"), flush=True)
         results["problems"][problem_name] = dict(
-            runs=runs, summary=summary,
+            runs=runs, summary=_summary(problem_name, runs, exact),
             reference_check=dict(
                 note="distance of the reference (Dopri8 at 1e-15) to GONZALEZ-R order 8 at its smallest step",
                 distance=most_accurate.get("error"),
             ),
         )
+    results["error_constants_quartic_reduced_form"] = _error_constants(repeats)
+    return results
 
-    # Error constants of every scheme, on the quartic's reduced form.
+
+def _summary(problem_name, runs, exact) -> dict:
+    """At each target: the cheapest run overall, the cheapest energy-exact run, the
+    cheapest Dopri8 run, and the energy-exact run's time over Dopri8's."""
+
+    def best(names, target):
+        found = [(name, _cheapest(runs[name], target)) for name in names]
+        found = [(name, row) for name, row in found if row is not None]
+        return min(found, key=lambda item: item[1]["wall_time_s"]) if found else (None, None)
+
+    def describe(item):
+        return "none" if item[0] is None else f"{item[0]} ({item[1]['wall_time_s'] * 1e3:.2f} ms)"
+
+    summary = {}
+    for target in TARGETS:
+        overall, energy_exact = best(list(runs), target), best(exact, target)
+        dopri8 = best(["Dopri8 (adaptive)"], target)
+        ratio = (energy_exact[1]["wall_time_s"] / dopri8[1]["wall_time_s"]
+                 if energy_exact[1] is not None and dopri8[1] is not None else None)
+        summary[f"{target:.0e}"] = dict(
+            cheapest=dict(method=overall[0], run=overall[1]),
+            cheapest_energy_exact=dict(method=energy_exact[0], run=energy_exact[1]),
+            cheapest_dopri8=dopri8[1],
+            energy_exact_over_dopri8=ratio,
+        )
+        print(f"{problem_name:10s} error {target:.0e}: cheapest {describe(overall)}; energy-exact "
+              f"{describe(energy_exact)}; Dopri8 {describe(dopri8)}; ratio "
+              + (f"{ratio:.2f}" if ratio is not None else "n/a"), flush=True)
+    return summary
+
+
+def _error_constants(repeats) -> dict:
+    """Each scheme's error constant, on the quartic's reduced form (adapted coordinates)."""
     quartic = nh.examples.chaotic_quartic(3)
     x0 = quartic.initial_state(0.7)
-    reduced_reference = nh.integrate_adaptive(quartic.adapted, x0, T1, rtol=1e-15, atol=1e-15, max_steps=10_000_000)
-    reduced_reference = (reduced_reference.ys[-1],)
+    reference = nh.integrate_adaptive(quartic.adapted, x0, T1, rtol=1e-15, atol=1e-15, max_steps=10_000_000)
+    reference = (reference.ys[-1],)
     constants = {}
     for scheme, definition in nh.COMPOSITION_SCHEMES.items():
         order = definition["order"]
         method = nh.Composition(nh.DiscreteGradient(), **definition)
-        rows = _sweep(quartic.adapted, method, x0, STEP_COUNTS[order][::2], reduced_reference, lambda x: (x,), options.repeats)
+        rows = _sweep(quartic.adapted, method, x0, STEP_COUNTS[order][::2], reference, lambda x: (x,), repeats)
         constants[scheme] = dict(order=order, stages=len(definition["coefficients"]),
                                  error_constant=_error_constant(rows, order), runs=rows)
         print(f"scheme {scheme:16s} order {order} stages {constants[scheme]['stages']:2d} "
               f"C = {constants[scheme]['error_constant']:.3g}", flush=True)
-    results["error_constants_quartic_reduced_form"] = constants
+    return constants
+
+
+def markdown(results) -> list[str]:
+    """The cheapest runs at each target, as table lines."""
+    lines = []
+    for problem_name, problem in results["problems"].items():
+        lines += [f"## {problem_name}: work against precision to t = {results['t1']:g}", "",
+                  "| error | cheapest run | ms | cheapest energy-exact run | ms | cheapest Dopri8 ms | energy-exact / Dopri8 |",
+                  "|---|---|---:|---|---:|---:|---:|"]
+        for target, row in problem["summary"].items():
+            overall, exact, dopri8 = row["cheapest"], row["cheapest_energy_exact"], row["cheapest_dopri8"]
+            milliseconds = lambda run: "" if run is None else f"{run['wall_time_s'] * 1e3:.2f}"  # noqa: E731
+            ratio = row["energy_exact_over_dopri8"]
+            lines.append(f"| {target} | {overall['method'] or 'none'} | {milliseconds(overall['run'])} | "
+                         f"{exact['method'] or 'none'} | {milliseconds(exact['run'])} | {milliseconds(dopri8)} | "
+                         + ("" if ratio is None else f"{ratio:.1f}") + " |")
+        lines.append("")
+    return lines
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--quick", action="store_true", help="every other step count, 3 repeats")
+    options = parser.parse_args()
+    results = work_precision(3 if options.quick else options.repeats, options.quick)
     write(results, "benchmarks/results/composition.json")
+    print("\n".join(markdown(results)))
 
 
 if __name__ == "__main__":

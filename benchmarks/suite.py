@@ -16,6 +16,10 @@ run, on the gearbox and the n = 3 chaotic quartic at h = 0.1.
    analytic reduced form, for the quartic with n = 1, 3, 10, 30, the fitted exponent of
    cost against n, and the time of each part of a step (`_profile.py`).
 5. Ensembles split over 2 CPU devices (`sharding.py`, in its own process).
+6. Work against precision with the compositions of order 4, 6 and 8 (`composition.py`):
+   GONZALEZ-R and GONZALEZ on the reduced form, composed, beside their second-order
+   selves, Tsit5 and Dopri8, to t = 10 down to errors of 1e-10; at each target error the
+   cheapest run, the cheapest energy-exact run and the cheapest Dopri8 run.
 
 Every time is the median of `--repeats` runs (after a warm-up run). Results go to
 benchmarks/results/suite.json and, as tables, benchmarks/results/suite.md.
@@ -41,6 +45,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
+import composition  # noqa: E402
 import peers  # noqa: E402
 from _profile import step_parts  # noqa: E402
 from _timing import batch_rate, per_step, run_and_time, write  # noqa: E402
@@ -295,6 +300,7 @@ def markdown(results):
         "Parts of one GONZALEZ-R step (µs): " + "; ".join(
             f"n = {n}: " + ", ".join(f"{k} {v:.3g}" for k, v in row["GONZALEZ-R"]["parts_us"].items())
             for n, row in results["scaling"]["sizes"].items()), ""]
+    lines += ["# Compositions: work against precision", ""] + composition.markdown(results["composition"])
     shard = results["sharding"]
     lines += [f"## Ensemble over {shard['devices']} CPU devices", "",
               f"{shard['batch']} gearbox trajectories x {shard['steps']} GONZALEZ-R steps: one device "
@@ -338,6 +344,8 @@ def main():
     results["scaling"] = scaling(options)
     print("sharding", flush=True)
     results["sharding"] = sharding(options)
+    print("compositions: work against precision", flush=True)
+    results["composition"] = composition.work_precision(options.repeats, options.quick)
     results["suite_seconds"] = time.perf_counter() - start
     write(results, options.out)
     table.write_text(markdown(results))
