@@ -160,6 +160,22 @@ def gonzalez(
     return gonzalez_correction(f, jax.grad(f)(midpoint, args), x, x1, args)
 
 
+def gonzalez_values(
+    f: ScalarFunction,
+    x: Float[Array, " N"],
+    x1: Float[Array, " N"],
+    args: Any = None,
+) -> Float[Array, " N"]:
+    r"""The values of `gonzalez`, without its Taylor form for nearly equal points.
+
+    `gonzalez` takes its value from the printed formula on both sides of the switch and
+    uses the Taylor form only for its derivatives, so the two functions agree in value;
+    this one has no branch, and under `vmap` no third derivative evaluated by every
+    trajectory at every call. For a caller that never differentiates it: the chord
+    iteration's residual (`nhjax.AbstractMethod.root_find_residual`)."""
+    return gonzalez_correction(f, jax.grad(f)(0.5 * (x + x1), args), x, x1, args, taylor=False)
+
+
 def gonzalez_correction(
     f: ScalarFunction,
     gradient: Float[Array, " N"],
@@ -175,9 +191,12 @@ def gonzalez_correction(
     has it (a root find evaluates this with one $x$ and many $x'$).
 
     (discGradEn) holds for any $g$. With `taylor=True`, $g$ must be $\nabla f(\bar x)$
-    and nearly equal points use the Taylor form of `gonzalez`. With `taylor=False` (for
-    an approximate $g$, as in GONZALEZ-R with finite differences, where no expansion
-    applies) the printed formula is used down to $\delta = 0$, where the value is $g$.
+    and nearly equal points use the Taylor form of `gonzalez` for the derivatives. With
+    `taylor=False` the printed formula is used down to $\delta = 0$, where the value is
+    $g$: the same values, with derivatives that lose accuracy as $\epsilon/|\delta|^2$
+    for nearly equal points; for an approximate $g$ (GONZALEZ-R with finite
+    differences, where no expansion applies) and for callers that never differentiate
+    the result (`gonzalez_values`).
     """
     delta = x1 - x
     midpoint = 0.5 * (x + x1)

@@ -175,8 +175,10 @@ def test_batch_members_equal_their_single_runs(batched):
         pick = lambda tree: jax.tree.map(lambda leaf: leaf[index], tree)  # noqa: E731
         alone = single(pick(states), pick(args), steps[index])
         assert alone.result == pick(solution.result), name
+        # Equal to rounding: the batched program is vectorised code, compiled apart
+        # from the single one, so it may round differently (a few ulps).
         for together, apart in zip(_leaves(pick(solution.ys)), _leaves(alone.ys)):
-            np.testing.assert_allclose(together, apart, rtol=0, atol=1e-13, err_msg=name)
+            np.testing.assert_allclose(together, apart, rtol=1e-14, atol=1e-13, err_msg=name)
 
 
 def _loss(system, method, y0, args, dt, adjoint=None):

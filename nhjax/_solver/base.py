@@ -122,7 +122,11 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     - `setup(system, h, y0, args, carry) -> (guess, data)`: the initial guess for the
       unknowns (a 1-D array) and everything the residual needs;
-    - `residual(unknowns, data)`, whose root is the step;
+    - `residual(unknowns, data)`, whose root is the step, and
+      `root_find_residual(unknowns, data)`, the same values computed without what only
+      the residual's derivatives need (by default the residual itself): the chord
+      iteration evaluates it and never differentiates it, while the derivatives of the
+      root (`_implicit_root`) and derivative-based root finders use `residual`;
     - `simplified_residual(unknowns, data)`: a cheaper function with nearly the same
       Jacobian (see `nhjax._solver.chord`), whose Jacobian at the guess,
       `chord_jacobian(unknowns, data)` (by default `jax.jacfwd`), the default chord root
@@ -152,6 +156,9 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     def residual(self, unknowns, data) -> Array:
         raise NotImplementedError
+
+    def root_find_residual(self, unknowns, data) -> Array:
+        return self.residual(unknowns, data)
 
     def simplified_residual(self, unknowns, data) -> Array:
         return self.residual(unknowns, data)
@@ -215,14 +222,16 @@ class AbstractMethod(diffrax.AbstractSolver):
         options = {}
         evaluations_finite = jnp.all(jnp.isfinite(guess))
         singular = jnp.array(False)
+        residual = self.residual
         if isinstance(root_finder, Chord):
+            residual = self.root_find_residual
             jacobian = self.chord_jacobian(guess, fixed_data)
             inverse = invert(jacobian)
             evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(jacobian))
             singular = ~jnp.all(jnp.isfinite(inverse))
             options["inverse"] = inverse
         solution = optx.root_find(
-            self.residual,
+            residual,
             root_finder,
             guess,
             fixed_data,
@@ -233,7 +242,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         if isinstance(root_finder, Chord):
             residual_size = solution.state.residual_size
         else:
-            residual_size = jnp.max(jnp.abs(self.residual(solution.value, fixed_data)))
+            residual_size = jnp.max(jnp.abs(residual(solution.value, fixed_data)))
         evaluations_finite = evaluations_finite & jnp.isfinite(residual_size)
         root = _implicit_root(solution.value, data, residual=self.residual)
         y1, carry = self.complete(root, data)

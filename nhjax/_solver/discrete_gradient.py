@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import optimistix as optx
 
-from .._discrete_gradient import avf, gonzalez, itoh_abe, swap_arguments, SwappedArguments
+from .._discrete_gradient import avf, gonzalez, gonzalez_values, itoh_abe, swap_arguments, SwappedArguments
 from .._system import SkewGradientSystem
 from .base import AbstractMethod, increment_scale
 from .chord import midpoint_gradient
@@ -105,6 +105,13 @@ class DiscreteGradient(AbstractMethod):
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
         return u - h * (structure @ gradient) / scale
+
+    def root_find_residual(self, u, data):
+        """For `nhjax.gonzalez`, the residual with `gonzalez_values` (the same values,
+        no branch); otherwise the residual itself."""
+        if self.discrete_gradient is not gonzalez:
+            return self.residual(u, data)
+        return self.residual(u, data, gonzalez_values)
 
     def simplified_residual(self, u, data):
         """For Gonzalez, the residual with the midpoint gradient, whose Jacobian differs

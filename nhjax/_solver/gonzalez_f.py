@@ -6,7 +6,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._discrete_gradient import gonzalez
+from .._discrete_gradient import gonzalez, gonzalez_values
 from .._nonholonomic import NonholonomicSystem
 from .base import AbstractMethod, increment_scale, positive_unit
 from .chord import midpoint_gradient
@@ -91,6 +91,9 @@ class GonzalezF(AbstractMethod):
         return jnp.concatenate(
             [u - (h * flow + force) / scale, (a @ gradient[n:]) / constraint_unit]
         )
+
+    def root_find_residual(self, unknowns, data):
+        return self.residual(unknowns, data, gonzalez_values)
 
     def simplified_residual(self, unknowns, data):
         """The residual with the midpoint gradient in place of the discrete gradient
