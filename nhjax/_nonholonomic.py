@@ -162,14 +162,8 @@ class NonholonomicSystem(AbstractSystem):
     def momentum(self, q, rho, args, signs) -> Float[Array, " n"]:
         r"""$p = M X (X^T M X)^{-1}\rho$, eq. (ptoptilde): the momentum on the constraint
         with $X^T p = \rho$."""
-        return self._momentum_in_frame(q, self.frame(q, args, signs), rho, args)[0]
-
-    def _momentum_in_frame(self, q, frame, rho, args):
-        r"""(ptoptilde) for a given frame: $p$, and $y = (X^TMX)^{-1}\rho$, the velocity
-        in the frame ($\partial H/\partial p = Xy$)."""
-        weighted = solve_spd(self.inverse_metric(q, args), frame)
-        y = solve_spd(frame.T @ weighted, rho)
-        return weighted @ y, y
+        frame = self.frame(q, args, signs)
+        return momentum_in_frame(frame, rho, solve_spd(self.inverse_metric(q, args), frame))[0]
 
     def to_reduced(self, y, args, signs) -> Float[Array, " n+m"]:
         r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
@@ -258,6 +252,18 @@ class NonholonomicSystem(AbstractSystem):
         return quadratic & no_linear & symmetric & positive
 
 
+def momentum_in_frame(frame, rho, weighted=None):
+    r"""Eq. (ptoptilde) in a given frame $X$, from `weighted` $= MX$: $p = MX(X^TMX)^{-1}
+    \rho$, and $y = (X^TMX)^{-1}\rho$, the velocity in the frame
+    ($\partial H/\partial p = Xy$). `weighted=None` stands for $M = I$, where the
+    orthonormal frame gives $y = \rho$ and $p = X\rho$ (to rounding; exactly what the
+    formula is then taken to mean)."""
+    if weighted is None:
+        return frame @ rho, rho
+    y = solve_spd(frame.T @ weighted, rho)
+    return weighted @ y, y
+
+
 def split_reduced(zeta, signs):
     """$(q, \\rho)$ from $\\zeta$ of size $n + m = 2n - k$."""
     n = (zeta.shape[0] + signs.shape[0]) // 2
@@ -280,20 +286,45 @@ class ReducedSystem(eqx.Module):
     `"central_difference"`: $(X(q + \epsilon e_i) - X(q - \epsilon e_i))/2\epsilon$, the
     paper's finite-difference remark, with $\epsilon$ = `difference_step` (GONZALEZ-R
     passes $|h|$, as the paper does, so the method stays second order).
+
+    `metric` says how $M(q)$ is found: `"position"` (default) from
+    $\partial^2H/\partial p^2$ at each $q$; `"identity"` for $M = I$; or a constant
+    $(n, n)$ array. A caller who knows the metric is constant (GONZALEZ-R decides it from
+    the program of $\partial H/\partial p$, `nhjax._dependence`) saves an $n \times n$
+    solve at every evaluation, and for $M = I$ two.
     """
 
     system: NonholonomicSystem
     signs: Float[Array, " k"]
     derivative: Derivative = eqx.field(default="autodiff", static=True)
     difference_step: Any = None
+    metric: Any = "position"
 
     def __check_init__(self):
         check_derivative(self.derivative)
+        if isinstance(self.metric, str) and self.metric not in ("position", "identity"):
+            raise ValueError(f'metric must be "position", "identity" or an array, got {self.metric!r}.')
         if self.derivative == "central_difference" and self.difference_step is None:
             raise ValueError('derivative="central_difference" needs a difference_step.')
 
+    def momentum_in_frame(self, q, frame, rho, args):
+        """`nhjax._nonholonomic.momentum_in_frame` with this system's metric at `q`."""
+        if isinstance(self.metric, str):
+            if self.metric == "identity":
+                return momentum_in_frame(frame, rho)
+            weighted = solve_spd(self.system.inverse_metric(q, args), frame)
+        else:
+            weighted = self.metric @ frame
+        return momentum_in_frame(frame, rho, weighted)
+
+    def from_reduced(self, zeta, args) -> tuple[Array, Array]:
+        r"""$(q, p)$ from $\zeta = (q, \rho)$, eq. (ptoptilde)."""
+        q, rho = split_reduced(zeta, self.signs)
+        frame = self.system.frame(q, args, self.signs)
+        return q, self.momentum_in_frame(q, frame, rho, args)[0]
+
     def hamiltonian(self, zeta, args) -> Float[Array, ""]:
-        q, p = self.system.from_reduced(zeta, args, self.signs)
+        q, p = self.from_reduced(zeta, args)
         return self.system.hamiltonian(q, p, args)
 
     def frame_and_derivative(self, q, args):
@@ -317,7 +348,7 @@ class ReducedSystem(eqx.Module):
         r"""`structure_and_gradient` at $(q, \rho)$ from the frame and its derivative at
         $q$ (`frame_and_derivative`): how it depends on $\rho$ at fixed $q$, without
         the QR."""
-        p, y = self.system._momentum_in_frame(q, frame, rho, args)
+        p, y = self.momentum_in_frame(q, frame, rho, args)
         along_frame = jnp.einsum("j,jai,ib->ab", p, derivative, frame)
         structure = adapted_structure(frame, along_frame - along_frame.T)
         grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - jnp.einsum(

@@ -6,12 +6,30 @@ from typing import Any, ClassVar, NamedTuple
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
+from .._dependence import constant_inverse_metric, velocity_depends_on_position
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
 from .base import AbstractMethod, increment_scale
+
+
+def _metric(system: NonholonomicSystem, y0, args):
+    r"""How the step's `ReducedSystem` finds $M$: `"identity"` or a constant array where
+    the program of $\partial H/\partial p$ computes nothing from $q$ (and, for a
+    constant known before run time, from `args`), else `"position"` (see
+    `nhjax._dependence`)."""
+    q, p = y0
+    inverse = constant_inverse_metric(system, q, p, args)
+    if inverse is not None:
+        if np.array_equal(inverse, np.eye(q.shape[0])):
+            return "identity"
+        return jnp.asarray(np.linalg.inv(inverse), dtype=q.dtype)
+    if not velocity_depends_on_position(system, q, p, args):
+        return system.metric(q, args)
+    return "position"
 
 
 class _Carry(NamedTuple):
@@ -91,11 +109,11 @@ class GonzalezR(AbstractMethod):
     def is_symmetric(self) -> bool:
         return True
 
-    def _reduced(self, system, signs, h):
+    def _reduced(self, system, signs, h, y0, args):
         step = None
         if self.derivative == "central_difference":
             step = jnp.abs(h) if self.difference_step is None else self.difference_step
-        return ReducedSystem(system, signs, self.derivative, step)
+        return ReducedSystem(system, signs, self.derivative, step, _metric(system, y0, args))
 
     def initial_carry(self, system: NonholonomicSystem, y0, args):
         r"""What a step hands the next: its $\zeta'$ and sign choices, and the mean
@@ -118,7 +136,7 @@ class GonzalezR(AbstractMethod):
         signs = lax.stop_gradient(system.frame_signs(q, args))
         continues = jnp.all(signs == carry.signs) & jnp.all(carry.zeta[: q.shape[0]] == q)
         zeta = jnp.where(continues, carry.zeta, system.to_reduced(y0, args, signs))
-        reduced = self._reduced(system, signs, h)
+        reduced = self._reduced(system, signs, h, y0, args)
         # The predictor: the mean velocity of this step extrapolated linearly from those
         # of the two before, an O(h^2) error in the velocity, so the guess is O(h^3) from
         # the root; otherwise (the first two steps, a restart, a change of signs, in
@@ -146,9 +164,12 @@ class GonzalezR(AbstractMethod):
         data = _StepData(reduced, zeta, h, scale, args, reduced.hamiltonian(zeta, args), previous, previous_step)
         return guess, data
 
-    def residual(self, u, data, correction: bool = True):
-        """`correction=False`: the residual with the midpoint gradient alone, for the
-        Jacobian approximation (see `nhjax._solver.chord`)."""
+    def residual(self, u, data, correction: bool = True, taylor: bool | None = None):
+        r"""`correction=False`: the residual with the midpoint gradient alone, for the
+        Jacobian approximation (see `nhjax._solver.chord`). `taylor`: whether the
+        Gonzalez correction takes its derivatives from the Taylor form for nearly equal
+        points (`nhjax._discrete_gradient.gonzalez_correction`); by default where
+        $\partial X/\partial q$ is exact."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         zeta1 = zeta + scale * u
         structure, gradient = reduced.structure_and_gradient(0.5 * (zeta + zeta1), args)
@@ -159,10 +180,13 @@ class GonzalezR(AbstractMethod):
                 zeta,
                 zeta1,
                 args,
-                taylor=self.derivative == "autodiff",
+                taylor=self.derivative == "autodiff" if taylor is None else taylor,
                 f_x=data.energy,
             )
         return u - h * (structure @ gradient) / scale
+
+    def root_find_residual(self, u, data):
+        return self.residual(u, data, taylor=False)
 
     def simplified_residual(self, u, data):
         return self.residual(u, data, correction=False)
@@ -207,9 +231,9 @@ class GonzalezR(AbstractMethod):
 
     def complete(self, u, data):
         zeta, scale, args = data.zeta, data.scale, data.args
-        system, signs = data.reduced.system, data.reduced.signs
+        signs = data.reduced.signs
         zeta1 = zeta + scale * u
-        y1 = system.from_reduced(zeta1, args, signs)
+        y1 = data.reduced.from_reduced(zeta1, args)
         # The predictor's data carries no derivatives; zeta' does: the next step
         # starts from it.
         return y1, _Carry(

@@ -9,88 +9,10 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
-from jax.extend.core import ClosedJaxpr, Jaxpr, Var
 
+from .._dependence import velocity_depends_on_position
 from .._nonholonomic import NonholonomicSystem
 from .base import AbstractMethod, increment_scale, positive_unit
-
-
-# Primitives that apply a jaxpr to their operands one to one (a call, with its outputs
-# the jaxpr's outputs): dependence can be traced through them exactly. Anything else
-# that takes a dependent operand (loops, branches, linear solves) is taken to make every
-# output dependent, which can only send a system down the general path.
-_CALL_PRIMITIVES = frozenset(
-    {
-        "jit",
-        "pjit",
-        "closed_call",
-        "core_call",
-        "remat",
-        "remat2",
-        "checkpoint",
-        "custom_jvp_call",
-        "custom_vjp_call",
-        "custom_vjp_call_jaxpr",
-    }
-)
-
-
-def _called_jaxpr(eqn) -> Jaxpr | None:
-    if eqn.primitive.name not in _CALL_PRIMITIVES:
-        return None
-    for name in ("jaxpr", "call_jaxpr", "fun_jaxpr"):
-        inner = eqn.params.get(name)
-        if isinstance(inner, ClosedJaxpr):
-            inner = inner.jaxpr
-        if (
-            isinstance(inner, Jaxpr)
-            and len(inner.invars) == len(eqn.invars)
-            and len(inner.outvars) == len(eqn.outvars)
-        ):
-            return inner
-    return None
-
-
-def _dependent_outputs(jaxpr: Jaxpr, dependent_inputs: list[bool]) -> list[bool]:
-    """Which outputs of `jaxpr` are computed from the inputs flagged in
-    `dependent_inputs` (a forward sweep over its equations; conservative, see
-    `_CALL_PRIMITIVES`)."""
-    dependent = {var for var, flag in zip(jaxpr.invars, dependent_inputs) if flag}
-
-    def flagged(atom):
-        return isinstance(atom, Var) and atom in dependent
-
-    for eqn in jaxpr.eqns:
-        flags = [flagged(atom) for atom in eqn.invars]
-        if not any(flags):
-            continue
-        inner = _called_jaxpr(eqn)
-        out_flags = [True] * len(eqn.outvars) if inner is None else _dependent_outputs(inner, flags)
-        dependent.update(var for var, flag in zip(eqn.outvars, out_flags) if flag)
-    return [flagged(atom) for atom in jaxpr.outvars]
-
-
-def velocity_depends_on_position(system: NonholonomicSystem, q, p, args) -> bool:
-    r"""Whether $\partial H/\partial p$, as a JAX program in $(q, p, \text{args})$,
-    computes anything from $q$: `False` means the metric is constant (and then
-    $\partial H/\partial q$ does not depend on $p$, since
-    $\partial_p\partial_q H = \partial_q\partial_p H = 0$).
-
-    Decided at trace time from the jaxpr of `system.velocity` (`jax.make_jaxpr`, on
-    shapes and dtypes only), by following which variables are computed from $q$. The
-    answer is structural: a metric that depends on $q$ only through terms that vanish
-    (such as `0 * q[0]`) counts as $q$-dependent. Array leaves of `args` are inputs of
-    the program, never constants, so a metric read from `args` counts as constant.
-    """
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    shape = lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))  # noqa: E731
-
-    def velocity(q, p, dynamic):
-        return system.velocity(q, p, eqx.combine(dynamic, static))
-
-    closed = jax.make_jaxpr(velocity)(shape(q), shape(p), jax.tree.map(shape, dynamic))
-    flags = [True] + [False] * (len(closed.jaxpr.invars) - 1)
-    return any(_dependent_outputs(closed.jaxpr, flags))
 
 
 class SIDLA(AbstractMethod):

@@ -280,3 +280,61 @@ def test_rank_lost_between_steps_is_reported_at_its_time(second_row):
     np.testing.assert_allclose(times, crossing, atol=0.06)
     with pytest.raises(RuntimeError, match=r"failed at step 1[56]\d of 200 \(t = 1.5\d+ to 1.[56]\d*\): The constraint matrix A\(q\) lost full row rank"):
         nh.integrate(system, METHOD, y0, 0.01, 200)
+
+
+def _gearbox_with_kinetic(kinetic):
+    """The gearbox's potential and constraint with the kinetic energy `kinetic(q, p, args)`."""
+    return nh.NonholonomicSystem(
+        lambda q, p, args: kinetic(q, p, args) + GEARBOX.potential(q), GEARBOX.canonical.constraints
+    )
+
+
+_DIAGONAL = jnp.array([1.0, 2.0, 0.5])
+_METRIC_ROUTES = {
+    "identity": (_gearbox_with_kinetic(lambda q, p, args: 0.5 * p @ p), None),
+    "identity, through q": (_gearbox_with_kinetic(lambda q, p, args: 0.5 * p @ p * (1 + 0 * q[0])), None),
+    "constant": (_gearbox_with_kinetic(lambda q, p, args: 0.5 * p @ (_DIAGONAL * p)), None),
+    "constant, from args": (_gearbox_with_kinetic(lambda q, p, args: 0.5 * p @ (args * p)), _DIAGONAL),
+    "constant, through q": (
+        _gearbox_with_kinetic(lambda q, p, args: 0.5 * p @ (_DIAGONAL * p) * (1 + 0 * q[0])),
+        None,
+    ),
+}
+
+
+def test_the_metric_is_found_from_the_program():
+    """M = I and a constant M known when tracing are used as constants, a metric read from
+    `args` is computed once per step, and one the program computes from q (here through a
+    term that vanishes: the analysis is structural) at every evaluation."""
+    from nhjax._solver.gonzalez_r import _metric
+
+    y0 = GEARBOX.random_initial_state(jax.random.key(0))
+    found = {name: _metric(system, y0, args) for name, (system, args) in _METRIC_ROUTES.items()}
+    assert found["identity"] == "identity"
+    assert found["identity, through q"] == "position"
+    assert found["constant, through q"] == "position"
+    np.testing.assert_array_equal(found["constant"], jnp.diag(1 / _DIAGONAL))
+    np.testing.assert_allclose(found["constant, from args"], jnp.diag(1 / _DIAGONAL), rtol=1e-15)
+
+
+@pytest.mark.parametrize("metric", ["identity", "constant"])
+def test_the_metric_shortcuts_give_the_general_method(metric):
+    """The shortcuts compute the same method: equal to roundoff over 200 steps to the
+    run that evaluates M(q) at every point, with energy and constraint exact."""
+    key = jax.random.key(3)
+    y0 = GEARBOX.random_initial_state(key)
+    if metric == "constant":
+        q, p = y0
+        y0 = (q, _METRIC_ROUTES["constant"][0].project_momentum(q, p))
+    routes = [name for name in _METRIC_ROUTES if name.startswith(metric)]
+    runs = {
+        name: nh.integrate(_METRIC_ROUTES[name][0], METHOD, y0, 0.1, 200, args=_METRIC_ROUTES[name][1])
+        for name in routes
+    }
+    general = runs[f"{metric}, through q"]
+    for name, solution in runs.items():
+        assert solution.result == nh.RESULTS.successful
+        assert relative_energy_error(solution) <= 1e-13
+        assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-13
+        for leaf, general_leaf in zip(solution.ys, general.ys):
+            np.testing.assert_allclose(leaf, general_leaf, rtol=0, atol=1e-12, err_msg=name)
