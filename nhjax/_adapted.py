@@ -21,6 +21,16 @@ def adapted_structure(
     return jnp.concatenate([top, bottom], axis=0)
 
 
+def adapted_structure_times(
+    frame: Float[Array, "n m"], bracket: Float[Array, "m m"], vector: Float[Array, " n+m"]
+) -> Float[Array, " n+m"]:
+    r"""$\Pi v$ for $\Pi$ = `adapted_structure(frame, bracket)`, without forming $\Pi$:
+    $(X v_\rho,\ -X^T v_q + C v_\rho)$."""
+    n = frame.shape[0]
+    along_q, along_rho = vector[:n], vector[n:]
+    return jnp.concatenate([frame @ along_rho, bracket @ along_rho - frame.T @ along_q])
+
+
 def momentum_to_adapted(frame, p):
     """rho = X^T p, eq. (ptildetop)."""
     return frame.T @ p

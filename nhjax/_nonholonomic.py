@@ -18,7 +18,7 @@ from jaxtyping import Array, Float
 from ._linalg import solve_spd
 from ._householder import householder_frame, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
-from ._adapted import adapted_structure
+from ._adapted import adapted_structure, adapted_structure_times
 from ._system import AbstractSystem, SkewGradientSystem, _require_floating_vector, _require_scalar
 
 
@@ -348,17 +348,26 @@ class ReducedSystem(eqx.Module):
         r"""`structure_and_gradient` at $(q, \rho)$ from the frame and its derivative at
         $q$ (`frame_and_derivative`): how it depends on $\rho$ at fixed $q$, without
         the QR."""
+        bracket, gradient = self.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
+        return adapted_structure(frame, bracket), gradient
+
+    def bracket_and_gradient_in_frame(self, q, rho, frame, derivative, args):
+        r"""The skew block $B$ of $\Pi$ (skewMat) and $\nabla\mathcal{H}$ (eq:Htgrad)
+        at $(q, \rho)$, from the frame and its derivative at $q$; with
+        `nhjax._adapted.adapted_structure_times` they give $\Pi v$ without forming
+        $\Pi$. The contraction $\sum_j p_j\,\partial_iX_{ja}$ is formed once for
+        both."""
         p, y = self.momentum_in_frame(q, frame, rho, args)
-        along_frame = jnp.einsum("j,jai,ib->ab", p, derivative, frame)
-        structure = adapted_structure(frame, along_frame - along_frame.T)
-        grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - jnp.einsum(
-            "j,jai,a->i", p, derivative, y
-        )
-        return structure, jnp.concatenate([grad_q, y])
+        contracted = jnp.einsum("j,jai->ai", p, derivative)
+        along_frame = contracted @ frame
+        grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - y @ contracted
+        return along_frame - along_frame.T, jnp.concatenate([grad_q, y])
 
     def structure(self, zeta, args) -> Float[Array, "N N"]:
         return self.structure_and_gradient(zeta, args)[0]
 
     def vf(self, zeta, args) -> Float[Array, " N"]:
-        structure, gradient = self.structure_and_gradient(zeta, args)
-        return structure @ gradient
+        q, rho = split_reduced(zeta, self.signs)
+        frame, derivative = self.frame_and_derivative(q, args)
+        bracket, gradient = self.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
+        return adapted_structure_times(frame, bracket, gradient)

@@ -10,6 +10,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
+from .._adapted import adapted_structure_times
 from .._dependence import constant_inverse_metric, velocity_depends_on_position
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
@@ -172,7 +173,9 @@ class GonzalezR(AbstractMethod):
         $\partial X/\partial q$ is exact."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         zeta1 = zeta + scale * u
-        structure, gradient = reduced.structure_and_gradient(0.5 * (zeta + zeta1), args)
+        q, rho = split_reduced(0.5 * (zeta + zeta1), reduced.signs)
+        frame, derivative = reduced.frame_and_derivative(q, args)
+        bracket, gradient = reduced.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
         if correction:
             gradient = gonzalez_correction(
                 reduced.hamiltonian,
@@ -183,7 +186,7 @@ class GonzalezR(AbstractMethod):
                 taylor=self.derivative == "autodiff" if taylor is None else taylor,
                 f_x=data.energy,
             )
-        return u - h * (structure @ gradient) / scale
+        return u - h * adapted_structure_times(frame, bracket, gradient) / scale
 
     def root_find_residual(self, u, data):
         return self.residual(u, data, taylor=False)
@@ -217,8 +220,9 @@ class GonzalezR(AbstractMethod):
         q, rho = split_reduced(midpoint, reduced.signs)
 
         def field(q, rho, frame_and_derivative):
-            structure, gradient = reduced.structure_and_gradient_in_frame(q, rho, *frame_and_derivative, args)
-            return structure @ gradient
+            frame, derivative = frame_and_derivative
+            bracket, gradient = reduced.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
+            return adapted_structure_times(frame, bracket, gradient)
 
         frame_and_derivative = reduced.frame_and_derivative(q, args)
         at_midpoint = field(q, rho, frame_and_derivative)
