@@ -26,6 +26,7 @@ Run: python benchmarks/composition.py [--repeats 5] [--quick]
 """
 
 import argparse
+import pathlib
 
 import diffrax
 import jax
@@ -233,7 +234,7 @@ def main():
     parser.add_argument("--quick", action="store_true", help="every other step count, 3 repeats")
     options = parser.parse_args()
     results = work_precision(3 if options.quick else options.repeats, options.quick)
-    write(results, "benchmarks/results/composition.json")
+    write(results, str(pathlib.Path(__file__).parent / "results" / "composition.json"))
     print("\n".join(markdown(results)))
 
 
