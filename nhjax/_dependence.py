@@ -63,46 +63,51 @@ def _dependent_outputs(jaxpr: Jaxpr, dependent_inputs: list[bool]) -> list[bool]
     return [flagged(atom) for atom in jaxpr.outvars]
 
 
-def velocity_depends_on_position(system, q, p, args) -> bool:
+def _velocity_program(system, q, p, args):
+    """The jaxpr of $\partial H/\partial p$ in $(q, p, \text{array leaves of args})$,
+    traced on shapes and dtypes only, and the function it traces."""
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    shape = lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))  # noqa: E731
+
+    def velocity(q, p, dynamic):
+        return system.velocity(q, p, eqx.combine(dynamic, static))
+
+    closed = jax.make_jaxpr(velocity)(shape(q), shape(p), jax.tree.map(shape, dynamic))
+    return closed.jaxpr, velocity, dynamic
+
+
+def velocity_dependence(system, q, p, args) -> tuple[bool, bool]:
     r"""Whether $\partial H/\partial p$, as a JAX program in $(q, p, \text{args})$,
-    computes anything from $q$: `False` means the metric is constant (and then
-    $\partial H/\partial q$ does not depend on $p$, since
-    $\partial_p\partial_q H = \partial_q\partial_p H = 0$).
+    computes anything from $q$, and whether from the array leaves of `args`. Not from
+    $q$ means the metric is constant (and then $\partial H/\partial q$ does not depend
+    on $p$, since $\partial_p\partial_q H = \partial_q\partial_p H = 0$); not from
+    `args` either means it is a constant of the program (`evaluated_inverse_metric`).
 
     Decided at trace time from the jaxpr of `system.velocity` (`jax.make_jaxpr`, on
-    shapes and dtypes only), by following which variables are computed from $q$. The
-    answer is structural: a metric that depends on $q$ only through terms that vanish
-    (such as `0 * q[0]`) counts as $q$-dependent. Array leaves of `args` are inputs of
-    the program, never constants, so a metric read from `args` counts as constant.
+    shapes and dtypes only), by following which variables are computed from which
+    inputs. The answer is structural: a metric that depends on $q$ only through terms
+    that vanish (such as `0 * q[0]`) counts as $q$-dependent. Array leaves of `args` are
+    inputs of the program, never constants (they may be traced or differentiated).
     """
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    shape = lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))  # noqa: E731
-
-    def velocity(q, p, dynamic):
-        return system.velocity(q, p, eqx.combine(dynamic, static))
-
-    closed = jax.make_jaxpr(velocity)(shape(q), shape(p), jax.tree.map(shape, dynamic))
-    flags = [True] + [False] * (len(closed.jaxpr.invars) - 1)
-    return any(_dependent_outputs(closed.jaxpr, flags))
+    jaxpr, _, _ = _velocity_program(system, q, p, args)
+    p_inputs = len(jax.tree.leaves(p))
+    args_inputs = len(jaxpr.invars) - 1 - p_inputs
+    on_position = any(_dependent_outputs(jaxpr, [True] + [False] * (p_inputs + args_inputs)))
+    on_args = any(_dependent_outputs(jaxpr, [False] * (1 + p_inputs) + [True] * args_inputs))
+    return on_position, on_args
 
 
-def constant_inverse_metric(system, q, p, args) -> np.ndarray | None:
-    r"""$K = \partial^2H/\partial p^2$ as a NumPy array, when $\partial H/\partial p$
-    computes nothing from $q$ nor from the array leaves of `args` (the same trace-time
-    analysis as `velocity_depends_on_position`): then $K$ is a constant of the program,
-    evaluated once here; otherwise `None` (a metric that depends on $q$, or on
-    parameters that may be traced or differentiated)."""
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    shape = lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))  # noqa: E731
+def velocity_depends_on_position(system, q, p, args) -> bool:
+    """The first answer of `velocity_dependence`: whether the metric may vary with $q$."""
+    return velocity_dependence(system, q, p, args)[0]
 
-    def velocity(q, p, dynamic):
-        return system.velocity(q, p, eqx.combine(dynamic, static))
 
-    closed = jax.make_jaxpr(velocity)(shape(q), shape(p), jax.tree.map(shape, dynamic))
-    p_inputs = len(jax.tree.leaves(shape(p)))
-    flags = [True] + [False] * p_inputs + [True] * (len(closed.jaxpr.invars) - 1 - p_inputs)
-    if any(_dependent_outputs(closed.jaxpr, flags)):
-        return None
+def evaluated_inverse_metric(system, q, p, args) -> np.ndarray:
+    r"""$K = \partial^2H/\partial p^2$ as a NumPy array, for a system whose
+    $\partial H/\partial p$ computes nothing from $q$ nor from the array leaves of
+    `args` (`velocity_dependence`): a constant of the program, evaluated once, at
+    trace time, with zeros in place of the inputs it does not read."""
+    _, velocity, dynamic = _velocity_program(system, q, p, args)
     zeros = lambda x: np.zeros(jnp.shape(x), jnp.result_type(x))  # noqa: E731
     with jax.ensure_compile_time_eval():
         inverse = jax.jacfwd(velocity, argnums=1)(zeros(q), zeros(p), jax.tree.map(zeros, dynamic))

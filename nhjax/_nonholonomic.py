@@ -172,8 +172,7 @@ class NonholonomicSystem(AbstractSystem):
 
     def from_reduced(self, zeta, args, signs) -> tuple[Array, Array]:
         """$(q, p)$ from $\\zeta = (q, \\rho)$, eq. (ptoptilde)."""
-        q, rho = split_reduced(zeta, signs)
-        return q, self.momentum(q, rho, args, signs)
+        return ReducedSystem(self, signs).from_reduced(zeta, args)
 
     def reduced(
         self, signs, derivative: Derivative = "autodiff", difference_step=None
@@ -340,22 +339,22 @@ class ReducedSystem(eqx.Module):
 
     def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
         r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
+        frame, bracket, gradient = self.frame_bracket_and_gradient(zeta, args)
+        return adapted_structure(frame, bracket), gradient
+
+    def frame_bracket_and_gradient(self, zeta, args):
+        r"""$X$, the block $B$ of $\Pi$ and $\nabla\mathcal{H}$ at $\zeta$
+        (`bracket_and_gradient_in_frame`), from one frame derivative."""
         q, rho = split_reduced(zeta, self.signs)
         frame, derivative = self.frame_and_derivative(q, args)
-        return self.structure_and_gradient_in_frame(q, rho, frame, derivative, args)
-
-    def structure_and_gradient_in_frame(self, q, rho, frame, derivative, args):
-        r"""`structure_and_gradient` at $(q, \rho)$ from the frame and its derivative at
-        $q$ (`frame_and_derivative`): how it depends on $\rho$ at fixed $q$, without
-        the QR."""
-        bracket, gradient = self.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
-        return adapted_structure(frame, bracket), gradient
+        return frame, *self.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
 
     def bracket_and_gradient_in_frame(self, q, rho, frame, derivative, args):
         r"""The skew block $B$ of $\Pi$ (skewMat) and $\nabla\mathcal{H}$ (eq:Htgrad)
-        at $(q, \rho)$, from the frame and its derivative at $q$; with
-        `nhjax._adapted.adapted_structure_times` they give $\Pi v$ without forming
-        $\Pi$. The contraction $\sum_j p_j\,\partial_iX_{ja}$ is formed once for
+        at $(q, \rho)$, from the frame and its derivative at $q$
+        (`frame_and_derivative`): how they depend on $\rho$ at fixed $q$, without the
+        QR; with `nhjax._adapted.adapted_structure_times` they give $\Pi v$ without
+        forming $\Pi$. The contraction $\sum_j p_j\,\partial_iX_{ja}$ is formed once for
         both."""
         p, y = self.momentum_in_frame(q, frame, rho, args)
         contracted = jnp.einsum("j,jai->ai", p, derivative)
@@ -367,7 +366,4 @@ class ReducedSystem(eqx.Module):
         return self.structure_and_gradient(zeta, args)[0]
 
     def vf(self, zeta, args) -> Float[Array, " N"]:
-        q, rho = split_reduced(zeta, self.signs)
-        frame, derivative = self.frame_and_derivative(q, args)
-        bracket, gradient = self.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
-        return adapted_structure_times(frame, bracket, gradient)
+        return adapted_structure_times(*self.frame_bracket_and_gradient(zeta, args))

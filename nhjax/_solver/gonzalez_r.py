@@ -25,26 +25,27 @@ import optimistix as optx
 from jaxtyping import Array
 
 from .._adapted import adapted_structure_times
-from .._dependence import constant_inverse_metric, velocity_depends_on_position
+from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
 from .base import AbstractMethod, increment_scale
 
 
 def _metric(system: NonholonomicSystem, y0, args):
-    r"""How the step's `ReducedSystem` finds $M$: `"identity"` or a constant array where
-    the program of $\partial H/\partial p$ computes nothing from $q$ (and, for a
-    constant known before run time, from `args`), else `"position"` (see
-    `nhjax._dependence`)."""
+    r"""How the step's `ReducedSystem` finds $M$: `"position"` where the program of
+    $\partial H/\partial p$ computes something from $q$; else a constant, computed once
+    per step where it is read from `args`, and otherwise known at trace time:
+    `"identity"` or the array (see `nhjax._dependence`)."""
     q, p = y0
-    inverse = constant_inverse_metric(system, q, p, args)
-    if inverse is not None:
-        if np.array_equal(inverse, np.eye(q.shape[0])):
-            return "identity"
-        return jnp.asarray(np.linalg.inv(inverse), dtype=q.dtype)
-    if not velocity_depends_on_position(system, q, p, args):
+    on_position, on_args = velocity_dependence(system, q, p, args)
+    if on_position:
+        return "position"
+    if on_args:
         return system.metric(q, args)
-    return "position"
+    inverse = evaluated_inverse_metric(system, q, p, args)
+    if np.array_equal(inverse, np.eye(q.shape[0])):
+        return "identity"
+    return jnp.asarray(np.linalg.inv(inverse), dtype=q.dtype)
 
 
 class _Carry(NamedTuple):
@@ -187,9 +188,7 @@ class GonzalezR(AbstractMethod):
         $\partial X/\partial q$ is exact."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         zeta1 = zeta + scale * u
-        q, rho = split_reduced(0.5 * (zeta + zeta1), reduced.signs)
-        frame, derivative = reduced.frame_and_derivative(q, args)
-        bracket, gradient = reduced.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
+        frame, bracket, gradient = reduced.frame_bracket_and_gradient(0.5 * (zeta + zeta1), args)
         if correction:
             gradient = gonzalez_correction(
                 reduced.hamiltonian,
