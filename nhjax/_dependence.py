@@ -64,7 +64,7 @@ def _dependent_outputs(jaxpr: Jaxpr, dependent_inputs: list[bool]) -> list[bool]
 
 
 def _velocity_program(system, q, p, args):
-    """The jaxpr of $\partial H/\partial p$ in $(q, p, \text{array leaves of args})$,
+    r"""The jaxpr of $\partial H/\partial p$ in $(q, p, \text{array leaves of args})$,
     traced on shapes and dtypes only, and the function it traces."""
     dynamic, static = eqx.partition(args, eqx.is_array)
     shape = lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x))  # noqa: E731
