@@ -120,7 +120,9 @@ def _third_directional_derivative(f, x, gradient, direction, args):
     def slope(offset):
         return jax.jvp(lambda z: f(z, args), (x + offset * along,), (along,))[1]
 
-    second_difference = slope(step) - 2.0 * (gradient @ along) + slope(-step)
+    # One traced slope for both offsets: half the program, under every derivative.
+    forward, backward = jax.vmap(slope)(jnp.array([step, -step], dtype=x.dtype))
+    second_difference = forward - 2.0 * (gradient @ along) + backward
     return second_difference / step**2 * length**3
 
 
@@ -154,7 +156,12 @@ def gonzalez(
     (the expansion's at $\delta = 0$): the expansion's truncation error has one sign
     from step to step, and as a value it drifted GONZALEZ-R's energy by $3\cdot10^{-10}$
     over $2\cdot10^4$ steps of $h = 0.1/17$ on the gearbox, against $10^{-13}$ now.
-    Only the branch in use is evaluated (`lax.cond`, except under `vmap`).
+    Both forms are evaluated and one selected (`jnp.where`), not branched on
+    (`lax.cond`): every caller in nhjax that uses this form differentiates it (the
+    derivatives of a step's root), and a derivative program through a `lax.cond`
+    carries both branches' linearisations and their saved values, which made the
+    reverse-mode program through a GONZALEZ-R run a quarter larger to compile; a step's
+    values come from `gonzalez_values`, which has no Taylor form.
     """
     midpoint = 0.5 * (x + x1)
     return gonzalez_correction(f, jax.grad(f)(midpoint, args), x, x1, args)
@@ -199,35 +206,24 @@ def gonzalez_correction(
     the result (`gonzalez_values`).
     """
     delta = x1 - x
-    midpoint = 0.5 * (x + x1)
-    if taylor:
-        near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
-    else:
-        near = jnp.all(delta == 0)
-
-    def printed(divide_by_zero):
-        numerator = f(x1, args) - (f(x, args) if f_x is None else f_x) - gradient @ delta
-        return (numerator / jnp.where(divide_by_zero, 1.0, delta @ delta)) * delta
-
-    def taylor_form():
-        length = safe_norm(delta)
-        direction = delta / jnp.where(length == 0, 1.0, length)
-        third = _third_directional_derivative(f, midpoint, gradient, direction, args)
-        expansion = (third * length / 24.0) * delta
-        # The value is the printed formula's, the derivatives the expansion's: the
-        # expansion's truncation error, though below the rounding of the printed
-        # formula at the switch, has one sign step after step, and over 10^4 steps and
-        # more it would drift the energy; the printed value keeps (discGradEn) to
-        # rounding, and its cancellation, an error of eps |f| / |delta| in the
-        # gradient, moves the step by rounding only (the step is h times it, and
-        # |delta| = O(h)).
-        zero = delta @ delta == 0
-        exact = jnp.where(zero, expansion, printed(zero))
-        return expansion + jax.lax.stop_gradient(exact - expansion)
-
+    zero = delta @ delta == 0
+    numerator = f(x1, args) - (f(x, args) if f_x is None else f_x) - gradient @ delta
+    printed = (numerator / jnp.where(zero, 1.0, delta @ delta)) * jnp.where(zero, 0.0, delta)
     if not taylor:
-        return gradient + jnp.where(near, 0.0, printed(near))
-    return gradient + jax.lax.cond(near, taylor_form, lambda: printed(near))
+        return gradient + printed
+    length = safe_norm(delta)
+    direction = delta / jnp.where(length == 0, 1.0, length)
+    third = _third_directional_derivative(f, 0.5 * (x + x1), gradient, direction, args)
+    expansion = (third * length / 24.0) * delta
+    # The value is the printed formula's, the derivatives the expansion's: the
+    # expansion's truncation error, though below the rounding of the printed formula at
+    # the switch, has one sign step after step, and over 10^4 steps and more it would
+    # drift the energy; the printed value keeps (discGradEn) to rounding, and its
+    # cancellation, an error of eps |f| / |delta| in the gradient, moves the step by
+    # rounding only (the step is h times it, and |delta| = O(h)).
+    taylor_form = expansion + jax.lax.stop_gradient(printed - expansion)
+    near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
+    return gradient + jnp.where(near, taylor_form, printed)
 
 
 def itoh_abe(

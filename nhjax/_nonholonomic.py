@@ -330,7 +330,7 @@ class ReducedSystem(eqx.Module):
         r"""$X(q)$ and $\partial X/\partial q$, shape (n, m, n)."""
         frame = lambda x: self.system.frame(x, args, self.signs)  # noqa: E731
         if self.derivative == "autodiff":
-            derivative, value = jax.jacfwd(lambda x: (frame(x), frame(x)), has_aux=True)(q)
+            derivative, value = jax.jacfwd(lambda x: (lambda f: (f, f))(frame(x)), has_aux=True)(q)
             return value, derivative
         step = jnp.asarray(self.difference_step, q.dtype)
         offsets = step * jnp.eye(q.shape[0], dtype=q.dtype)

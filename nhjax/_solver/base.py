@@ -22,7 +22,9 @@ from .._system import AbstractSystem
 from .chord import Chord, invert
 
 
-def _no_gradient(tree: PyTree) -> PyTree:
+def no_gradient(tree: PyTree) -> PyTree:
+    """`tree` with its arrays cut from differentiation (`lax.stop_gradient`), its other
+    leaves kept."""
     arrays, static = eqx.partition(tree, eqx.is_array)
     return eqx.combine(lax.stop_gradient(arrays), static)
 
@@ -46,13 +48,16 @@ def _implicit_root(root, data, *, residual):
 def _implicit_root_jvp(primals, tangents, *, residual):
     root, data = primals
     _, data_tangent = tangents
-    jacobian = jax.jacfwd(residual)(root, _no_gradient(data))
     differentiable = jax.tree.map(lambda t: t is not None, data_tangent, is_leaf=lambda t: t is None)
     varying, fixed = eqx.partition(data, differentiable)
     tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
-    _, residual_tangent = jax.jvp(
-        lambda v: residual(root, eqx.combine(v, fixed)), (varying,), (tangent_in,)
-    )
+    # One linearisation of the residual serves both its Jacobian in the unknowns and its
+    # derivative along the data's tangent: the residual is traced (and compiled) once.
+    _, linear = jax.linearize(lambda u, v: residual(u, eqx.combine(v, fixed)), root, varying)
+    no_tangent = jax.tree.map(jnp.zeros_like, varying)
+    unit = jnp.eye(root.shape[0], dtype=root.dtype)
+    jacobian = jax.vmap(lambda e: linear(e, no_tangent), out_axes=1)(unit)
+    residual_tangent = linear(jnp.zeros_like(root), tangent_in)
     return root, -jnp.linalg.solve(jacobian, residual_tangent)
 
 
@@ -217,7 +222,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         (`step_failure`)."""
         guess, data = self.setup(system, h, y0, args, solver_state.carry)
         # The root find runs on constants; its derivatives come from `_implicit_root`.
-        guess, fixed_data = lax.stop_gradient(guess), _no_gradient(data)
+        guess, fixed_data = lax.stop_gradient(guess), no_gradient(data)
         root_finder = self._root_finder(guess.dtype)
         options = {}
         evaluations_finite = jnp.all(jnp.isfinite(guess))

@@ -28,7 +28,7 @@ from .._adapted import adapted_structure_times
 from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
-from .base import AbstractMethod, increment_scale
+from .base import AbstractMethod, increment_scale, no_gradient
 
 
 def _metric(system: NonholonomicSystem, y0, args):
@@ -168,10 +168,13 @@ class GonzalezR(AbstractMethod):
         extrapolates = (
             continues & jnp.all(jnp.isfinite(carry.earlier_velocity)) & (jnp.abs(reach) <= 4)
         )
+        # The guess carries no derivatives (the root's come from the implicit function
+        # theorem), so neither branch is differentiated: cut before the branch, so that
+        # derivative programs do not carry the Euler branch's linearisation.
         velocity = lax.cond(
             extrapolates,
             lambda: carry.last_velocity + reach * (carry.last_velocity - carry.earlier_velocity),
-            lambda: reduced.vf(zeta, args),
+            lambda: no_gradient(reduced).vf(*no_gradient((zeta, args))),
         )
         scale = increment_scale(zeta)
         guess = h * velocity / scale
