@@ -427,17 +427,22 @@ def default_tolerance(dtype) -> float:
 @eqx.filter_jit
 def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, rtol, atol, max_steps):
     initial_result = first_failure(args_result(args), system.initial_state_result(y0, args))
-    y_start = nan_where_failed(initial_result != RESULTS.successful, y0, y0)
+    cannot_start = initial_result != RESULTS.successful
+    y_start = nan_where_failed(cannot_start, y0, y0)
+    # A trajectory that cannot start integrates over no time: from a NaN state the
+    # controller would reject every step until max_steps, and under vmap the whole
+    # batch would wait for it.
+    t_end = jnp.where(cannot_start, t0, t1)
 
     solution = diffrax.diffeqsolve(
         system,
         solver,
         t0=t0,
-        t1=t1,
+        t1=t_end,
         dt0=None,
         y0=y_start,
         args=args,
-        saveat=diffrax.SaveAt(ts=save_at, fn=_save_observables(system)),
+        saveat=diffrax.SaveAt(ts=jnp.where(cannot_start, t0, save_at), fn=_save_observables(system)),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         max_steps=max_steps,
         adjoint=adjoint,
@@ -448,4 +453,5 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, r
         num_steps=solution.stats["num_accepted_steps"],
         num_rejected_steps=solution.stats["num_rejected_steps"],
     )
-    return _assemble(solution.ts, solution.ys, result, stats, (y0, t0, t1, save_at, args))
+    ts = jnp.where(cannot_start, save_at, solution.ts)
+    return _assemble(ts, solution.ys, result, stats, (y0, t0, t1, save_at, args))

@@ -204,6 +204,11 @@ def test_adaptive_baseline_bad_input_and_result_codes():
     violating = (y0[0], y0[1] + 1.0)
     solution = nh.integrate_adaptive(GEARBOX.canonical, violating, 1.0, throw=False)
     assert solution.result == nh.RESULTS.constraint_violated_initially
+    # A start that fails is not integrated: no step is tried (from its NaN state the
+    # controller would reject steps up to max_steps), and the save times are the ones asked.
+    assert int(solution.stats["num_steps"]) == 0 and int(solution.stats["num_rejected_steps"]) == 0
+    np.testing.assert_array_equal(solution.ts, [0.0, 1.0])
+    assert not np.isfinite(np.asarray(solution.ys[0])).any()
     with pytest.raises(Exception, match="constraint"):
         nh.integrate_adaptive(GEARBOX.canonical, violating, 1.0)
     too_few = nh.integrate_adaptive(GEARBOX.canonical, y0, 100.0, max_steps=5, throw=False)
