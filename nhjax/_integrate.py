@@ -1,6 +1,16 @@
 """How steps are strung together: fixed steps through `diffrax.diffeqsolve` for any
 method (`integrate`), and adaptive steps of a standard diffrax solver on the system's own
-vector field (`integrate_adaptive`), the non-geometric baseline and the tests' reference."""
+vector field (`integrate_adaptive`), the non-geometric baseline and the tests' reference.
+
+**What a step costs.** For the implicit methods, the method's root find: for GONZALEZ-R
+the chord matrix and about four residuals (see `nhjax._solver.gonzalez_r`); around it
+the loop adds diffrax's bookkeeping and, at each save, the energy and constraint
+residual. Reverse-mode derivatives (`diffrax.RecursiveCheckpointAdjoint`) run each step
+again from a checkpoint and then the transpose of its linearisation, which for every
+method costs several forward steps. `python benchmarks/gradients.py` measures the time and
+peak memory of a gradient against the forward run; `python benchmarks/suite.py` the
+forward steps of every method.
+"""
 
 import math
 import numbers

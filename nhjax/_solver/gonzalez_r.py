@@ -5,14 +5,16 @@ evaluated from $H$ and $A$ alone.
 predictor's midpoint and at $n$ shifted positions, each shift with its own frame and
 frame derivative through the QR, the $\rho$ columns by forward-mode autodiff, and the
 inverse), then about four residuals (the field at the midpoint, and $\mathcal{H}$ at
-$\zeta'$ for the Gonzalez correction). Timed part by part (`benchmarks/_profile.py`,
-h = 0.1): on the gearbox the chord matrix 2.3 µs and a residual 0.8 µs, 4.3 residuals
-per step; on the $n = 3$ quartic 21 µs and 3.2 µs, 4.7 per step. The chord matrix's
-$n$ frame derivatives at shifted positions dominate as $n$ grows. Where
+$\zeta'$ for the Gonzalez correction). The chord matrix costs several residuals, and
+its $n$ frame derivatives at shifted positions dominate as $n$ grows. Where
 $\partial H/\partial p$ does not depend on $q$ (checked on its program), the metric is
-a constant and $M = I$ costs nothing (`_metric`). Whole steps against the
-implicit-midpoint yardstick and the NumPy route: `python benchmarks/gonzalez_r.py`
-(results in `benchmarks/results/gonzalez_r.json`).
+a constant and $M = I$ costs nothing (`_metric`). Derivatives of a run add, per step,
+one linearisation of the residual (its Jacobian in the unknowns and its derivative
+along the data, `nhjax._solver.base._implicit_root`), whose second derivatives of the
+frame through the QR make most of the derivative program. Measured part by part by
+`python benchmarks/_profile.py`, whole steps against the implicit-midpoint yardstick
+and the NumPy route by `python benchmarks/gonzalez_r.py`, derivatives by
+`python benchmarks/gradients.py` (results in `benchmarks/results/`).
 """
 
 from typing import Any, ClassVar, NamedTuple
