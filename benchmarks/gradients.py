@@ -1,15 +1,15 @@
-"""Reverse-mode gradients through long GONZALEZ-R runs on the gearbox: peak memory and
-the time of a gradient against the time of the forward run.
+"""Derivatives through long GONZALEZ-R runs on the gearbox: their compile time, their
+time against the forward run's, and peak memory.
 
-The loss is a smooth function of the final state after `--steps` steps at h = 0.1
-(default 100 000), differentiated with respect to the initial state (q0, p0) with
-`jax.grad` through `nhjax.integrate` and its default adjoint,
-`diffrax.RecursiveCheckpointAdjoint()` (O(log n) checkpoints), and with a fixed number
-of checkpoints for comparison. Each measurement runs in its own process, so that its
-peak resident memory (`ru_maxrss`) is its own; the peak after compilation is recorded
-too, so that what the run itself adds is visible.
+The loss is a smooth function of the final state after N steps at h = 0.1, for each N
+in `--steps` (default 2 000 and 100 000), differentiated with respect to the initial
+state (q0, p0) through `nhjax.integrate`: in reverse mode (`jax.grad`, the default
+adjoint `diffrax.RecursiveCheckpointAdjoint()`, O(log n) checkpoints) and in forward
+mode (`jax.jacfwd` with `diffrax.ForwardMode()`). Each measurement runs in its own
+process, so that its peak resident memory (`ru_maxrss`) is its own; the peak after
+compilation is recorded too, so that what the run itself adds is visible.
 
-Run: python benchmarks/gradients.py [--steps N] [--repeats R]
+Run: python benchmarks/gradients.py [--steps N ...] [--repeats R]
 Medians over repeats; results go to benchmarks/results/gradients.json.
 """
 
@@ -25,7 +25,7 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dict:
+def measure(mode: str, steps: int, repeats: int) -> dict:
     """In this process: compile and time the forward run or its gradient."""
     import diffrax
     import jax
@@ -37,7 +37,7 @@ def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dic
 
     gearbox = nh.examples.gearbox()
     y0 = gearbox.random_initial_state(jax.random.key(0))
-    adjoint = diffrax.RecursiveCheckpointAdjoint(checkpoints=checkpoints)
+    adjoint = diffrax.ForwardMode() if mode == "forward-mode" else diffrax.RecursiveCheckpointAdjoint()
 
     def loss(y0):
         solution = nh.integrate(
@@ -46,7 +46,8 @@ def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dic
         q, p = solution.ys
         return jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
 
-    function = jax.jit(loss if mode == "forward" else jax.grad(loss))
+    derivative = dict(forward=loss, reverse=jax.grad(loss), **{"forward-mode": jax.jacfwd(loss)})[mode]
+    function = jax.jit(derivative)
     compile_s = timed(lambda y: function.lower(y).compile(), y0)
     compiled_peak = _peak_mib()
     value, seconds = run_and_time(function, y0, repeats=repeats)
@@ -60,37 +61,34 @@ def measure(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dic
     )
 
 
-def _in_subprocess(mode: str, steps: int, repeats: int, checkpoints: int | None) -> dict:
+def _in_subprocess(mode: str, steps: int, repeats: int) -> dict:
     command = [sys.executable, __file__, "--child", mode, "--steps", str(steps), "--repeats", str(repeats)]
-    if checkpoints is not None:
-        command += ["--checkpoints", str(checkpoints)]
     output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
     return json.loads(output.strip().splitlines()[-1])
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--steps", type=int, default=100_000)
+    parser.add_argument("--steps", type=int, nargs="+", default=[2_000, 100_000])
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--checkpoints", type=int, default=None)
-    parser.add_argument("--child", choices=("forward", "gradient"))
+    parser.add_argument("--child", choices=("forward", "reverse", "forward-mode"))
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gradients.json"))
     options = parser.parse_args()
     if options.child:
-        print(json.dumps(measure(options.child, options.steps, options.repeats, options.checkpoints)))
+        print(json.dumps(measure(options.child, options.steps[0], options.repeats)))
         return
 
     from _timing import write
 
-    forward = _in_subprocess("forward", options.steps, options.repeats, None)
-    print(f"forward, {options.steps} steps: {forward}")
-    results = dict(steps=options.steps, dt=0.1, forward=forward, gradients={})
-    for checkpoints in (None, 1000):
-        gradient = _in_subprocess("gradient", options.steps, options.repeats, checkpoints)
-        gradient["time_ratio_to_forward"] = gradient["seconds"] / forward["seconds"]
-        label = "default (log n)" if checkpoints is None else f"{checkpoints} checkpoints"
-        results["gradients"][label] = gradient
-        print(f"gradient, {label}: {gradient}")
+    results = dict(dt=0.1, runs={})
+    for steps in options.steps:
+        run = {}
+        for mode in ("forward", "reverse", "forward-mode"):
+            run[mode] = _in_subprocess(mode, steps, options.repeats)
+            if mode != "forward":
+                run[mode]["time_ratio_to_forward"] = run[mode]["seconds"] / run["forward"]["seconds"]
+            print(f"{steps} steps, {mode}: {run[mode]}", flush=True)
+        results["runs"][str(steps)] = run
     write(results, options.out)
 
 
