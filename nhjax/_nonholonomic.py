@@ -93,7 +93,7 @@ class NonholonomicSystem(AbstractSystem):
 
     def multiplier(self, y, args) -> Float[Array, " k"]:
         r"""$\lambda$ from $\tfrac{d}{dt}[A(q)v] = 0$:
-        $A K A^T\lambda = A K \partial_q H - \partial_q(Av)[v]$ (SPEC §4)."""
+        $A K A^T\lambda = A K \partial_q H - \partial_q(Av)[v]$ (differentiating the constraint along the flow)."""
         q, p = y
         a = self.constraints(q, args)
         v = self.velocity(q, p, args)

@@ -33,7 +33,7 @@ def relative_energy_error(solution) -> float:
 
 
 def reference_final_state(system, y0, t1, args=None):
-    """SPEC §4: the index-1 ODE (`NonholonomicSystem.vf`, the multiplier eliminated by
+    """The index-1 ODE (`NonholonomicSystem.vf`, the multiplier eliminated by
     autodiff) by adaptive Dopri8 at rtol = atol = 1e-13 (`nhjax.integrate_adaptive`)."""
     solution = nh.integrate_adaptive(system, y0, t1, args, rtol=1e-13, atol=1e-13)
     return jax.tree.map(lambda y: y[-1], solution.ys)

@@ -169,7 +169,7 @@ def reverse_mode():
 
 @pytest.mark.parametrize("method_name, case", PARAMETRISED)
 def test_reverse_mode_matches_finite_differences(reverse_mode, method_name, case):
-    """SPEC issue: relative error <= 1e-6 over 200 steps, with respect to the initial
+    """Relative error <= 1e-6 over 200 steps, with respect to the initial
     state and the parameters, under jit and vmap."""
     theta, _, jacobian, differences = reverse_mode(method_name, case)
     assert bool(jnp.all(jnp.isfinite(jacobian)))

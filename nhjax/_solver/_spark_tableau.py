@@ -201,7 +201,7 @@ def lobatto_spark_tableau(s: int = 2, constraint_force: str = "IIID") -> SPARKTa
     )
 
 
-# SPEC §2, exact: IIIA [[0, 0], [1/2, 1/2]], IIIB [[1/2, 0], [1/2, 0]],
+# Jay's coefficients for s = 2, exact: IIIA [[0, 0], [1/2, 1/2]], IIIB [[1/2, 0], [1/2, 0]],
 # IIID = (IIIC + IIIC*)/2 = ([[1/2, -1/2], [1/2, 1/2]] + [[0, 0], [1, 0]])/2.
 LOBATTO_IIIA_B_C_CSTAR_D_2 = SPARKTableau(
     c=(0.0, 1.0),

@@ -148,7 +148,7 @@ class ChaoticQuartic(eqx.Module):
     def random_initial_states(
         self, key: PRNGKeyArray, count: int, dtype=None
     ) -> Float[Array, "count 4n+1"]:
-        """`count` states with H = 3.06 from uniformly random angles (SPEC §3)."""
+        """`count` states with H = 3.06 from uniformly random angles (`initial_state`)."""
         angles = jax.random.uniform(key, (count,), maxval=2 * jnp.pi, dtype=dtype)
         return jax.vmap(lambda angle: self.initial_state(angle, dtype))(angles)
 

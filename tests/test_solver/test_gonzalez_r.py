@@ -183,8 +183,9 @@ def test_finite_difference_option_agrees_at_order_two():
 
 
 def test_gearbox_partial_energies_drift_at_order_two_while_the_total_is_exact():
-    """H3 (the pendulum) and H - H3 are each conserved by the exact flow (SPEC §3); the
-    discrete gradient of the total mixes them, at O(h^2)."""
+    """H3 (the pendulum) and H - H3 are each conserved by the exact flow (A has no q3
+    column and V separates, paper §4.4); the discrete gradient of the total mixes them,
+    at O(h^2)."""
     y0 = GEARBOX.random_initial_state(jax.random.key(0))
     drifts = []
     for h in STEP_SIZES:
