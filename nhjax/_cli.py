@@ -215,13 +215,8 @@ def _output_problem(out: pathlib.Path) -> str | None:
 def _reproduce(arguments) -> int:
     # `figures` is the default "all", or the list given (repeats dropped, order kept).
     figures = FIGURES if "all" in arguments.figures else tuple(dict.fromkeys(arguments.figures))
-    try:
-        from ._reproduce import reproduce
-    except ModuleNotFoundError as error:
-        if error.name != "nhjax._reproduce":
-            raise
-        print("nhjax reproduce: error: this installation has no nhjax._reproduce.", file=sys.stderr)
-        return 1
+    from ._reproduce import reproduce
+
     results = reproduce(figures, quick=arguments.quick, out=arguments.out, progress=arguments.progress)
     print(f"Report, figures and results.json in {arguments.out}")
     for name, result in results.items():

@@ -167,6 +167,19 @@ def gonzalez(
     return gonzalez_correction(f, jax.grad(f)(midpoint, args), x, x1, args)
 
 
+def midpoint_gradient(
+    f: ScalarFunction,
+    x: Float[Array, " N"],
+    x1: Float[Array, " N"],
+    args: Any = None,
+) -> Float[Array, " N"]:
+    r"""$\nabla f(\tfrac{x + x'}{2})$: the Gonzalez discrete gradient without its
+    correction term. Not a discrete gradient ((discGradEn) fails at $O(|\delta|^3)$);
+    a method's simplified residual uses it for the chord matrix (see
+    `nhjax._solver.chord`)."""
+    return jax.grad(f)(0.5 * (x + x1), args)
+
+
 def gonzalez_values(
     f: ScalarFunction,
     x: Float[Array, " N"],

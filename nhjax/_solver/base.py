@@ -17,9 +17,10 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Int, PyTree
 
+from .._linalg import inverse
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
-from .chord import Chord, invert
+from .chord import Chord
 
 
 def no_gradient(tree: PyTree) -> PyTree:
@@ -231,10 +232,10 @@ class AbstractMethod(diffrax.AbstractSolver):
         if isinstance(root_finder, Chord):
             residual = self.root_find_residual
             jacobian = self.chord_jacobian(guess, fixed_data)
-            inverse = invert(jacobian)
+            chord_inverse = inverse(jacobian)
             evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(jacobian))
-            singular = ~jnp.all(jnp.isfinite(inverse))
-            options["inverse"] = inverse
+            singular = ~jnp.all(jnp.isfinite(chord_inverse))
+            options["inverse"] = chord_inverse
         solution = optx.root_find(
             residual,
             root_finder,

@@ -21,20 +21,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
-from .._linalg import inverse
-
-
-def midpoint_gradient(f, x, x1, args):
-    r"""$\nabla f(\tfrac{x + x'}{2})$: the Gonzalez discrete gradient without its
-    correction term, for a method's simplified residual (module docstring)."""
-    return jax.grad(f)(0.5 * (x + x1), args)
-
-
-def invert(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
-    """The explicit inverse of the (well-conditioned, I - O(h)) chord matrix: one
-    matrix-vector product per iteration instead of two triangular solves. Its rounding
-    changes only the contraction rate, not the root."""
-    return inverse(jacobian)
+from .._linalg import inverse as _inverse
 
 
 STALL_FACTOR = 8.0
@@ -52,7 +39,10 @@ class Chord(optx.AbstractRootFinder):
     r"""Chord iteration for a root of `fn(u, args)`, `u` a 1-D array.
 
     The inverse Jacobian approximation is `options["inverse"]` when the caller supplies
-    one; otherwise the inverse of
+    one (formed explicitly, `nhjax._linalg.inverse`: one matrix-vector product per
+    iteration instead of two triangular solves; the chord matrix is well conditioned,
+    $I - O(h)$, and the inverse's rounding changes the contraction rate, not the root);
+    otherwise the inverse of
     `options["jacobian"]`, or of `jax.jacfwd(fn)` at the initial guess. Stops when
     the last correction and the residual are both below `atol` (max norm), or when the
     iteration has stalled at the rounding floor (below); fails with
@@ -85,7 +75,7 @@ class Chord(optx.AbstractRootFinder):
             jacobian = options.get("jacobian")
             if jacobian is None:
                 jacobian = jax.jacfwd(lambda u: fn(u, args)[0])(y)
-            inverse = invert(jacobian)
+            inverse = _inverse(jacobian)
         inverse = lax.stop_gradient(inverse)
         infinity = jnp.array(jnp.inf, dtype=y.dtype)
         return _ChordState(inverse, infinity, infinity, infinity, jnp.array(0))

@@ -6,10 +6,17 @@ from typing import ClassVar
 
 import optimistix as optx
 
-from .._discrete_gradient import avf, gonzalez, gonzalez_values, itoh_abe, swap_arguments, SwappedArguments
+from .._discrete_gradient import (
+    avf,
+    gonzalez,
+    gonzalez_values,
+    itoh_abe,
+    midpoint_gradient,
+    swap_arguments,
+    SwappedArguments,
+)
 from .._system import SkewGradientSystem
 from .base import AbstractMethod, increment_scale
-from .chord import midpoint_gradient
 
 
 def midpoint_structure(structure, x, x1, args):
@@ -43,7 +50,7 @@ class DiscreteGradient(AbstractMethod):
     it also keeps the constraints, since the $q$-update lies in $\mathcal{D}$.
 
     Each step solves for the scaled increment $u = (x' - x)/s$, $s = 1 + |x|$ (elementwise),
-    from the explicit Euler predictor, by `root_finder` (default: Newton to
+    from the explicit Euler predictor, by `root_finder` (default: the chord iteration to
     `64 eps` of the dtype, see `nhjax._solver.base.default_root_finder`).
 
     **Arguments:**

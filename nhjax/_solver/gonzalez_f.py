@@ -6,10 +6,9 @@ from typing import ClassVar
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._discrete_gradient import gonzalez, gonzalez_values
+from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient
 from .._nonholonomic import NonholonomicSystem
 from .base import AbstractMethod, increment_scale, positive_unit
-from .chord import midpoint_gradient
 
 
 class GonzalezF(AbstractMethod):
