@@ -2,7 +2,7 @@ r"""The discrete-gradient method (E-int) for $\dot x = \Pi(x)\nabla H(x)$."""
 
 import functools
 from collections.abc import Callable
-from typing import ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import optimistix as optx
 
@@ -35,6 +35,17 @@ def _underlying(function):
     while isinstance(function, (functools.partial, SwappedArguments)):
         function = function.func if isinstance(function, functools.partial) else function.function
     return function
+
+
+class _StepData(NamedTuple):
+    """What the residual of one step needs (`DiscreteGradient.setup`): the start $x$,
+    the step $h$ and the scale $s$ of the unknowns $u = (x' - x)/s$."""
+
+    system: SkewGradientSystem
+    x: Any
+    h: Any
+    scale: Any
+    args: Any
 
 
 class DiscreteGradient(AbstractMethod):
@@ -103,15 +114,15 @@ class DiscreteGradient(AbstractMethod):
         del carry
         scale = increment_scale(y0)
         guess = h * system.vf(None, y0, args) / scale
-        return guess, (system, y0, h, scale, args)
+        return guess, _StepData(system, y0, h, scale, args)
 
     def residual(self, u, data, discrete_gradient=None):
-        system, x, h, scale, args = data
-        x1 = x + scale * u
+        system, x, args = data.system, data.x, data.args
+        x1 = x + data.scale * u
         discrete_gradient = self.discrete_gradient if discrete_gradient is None else discrete_gradient
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
-        return u - h * (structure @ gradient) / scale
+        return u - data.h * (structure @ gradient) / data.scale
 
     def root_find_residual(self, u, data):
         """For `nhjax.gonzalez`, the residual with `gonzalez_values` (the same values,
@@ -129,5 +140,4 @@ class DiscreteGradient(AbstractMethod):
         return self.residual(u, data, midpoint_gradient)
 
     def complete(self, u, data):
-        _, x, _, scale, _ = data
-        return x + scale * u, None
+        return data.x + data.scale * u, None

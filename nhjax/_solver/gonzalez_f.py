@@ -1,7 +1,7 @@
 r"""GONZALEZ-F, eq. (simpDirect): the Gonzalez discrete gradient on $T^*Q$ with
 constraint forces."""
 
-from typing import ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import jax.numpy as jnp
 import optimistix as optx
@@ -9,6 +9,18 @@ import optimistix as optx
 from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient
 from .._nonholonomic import NonholonomicSystem
 from .base import AbstractMethod, increment_scale, positive_unit
+
+
+class _StepData(NamedTuple):
+    """What the residual of one step needs (`GonzalezF.setup`): $z = (q, p)$ at the
+    start, the step, the scale of the unknowns and the unit of the constraint rows."""
+
+    system: NonholonomicSystem
+    z: Any
+    h: Any
+    scale: Any
+    constraint_unit: Any
+    args: Any
 
 
 class GonzalezF(AbstractMethod):
@@ -74,10 +86,10 @@ class GonzalezF(AbstractMethod):
         constraint_unit = positive_unit(
             jnp.max(jnp.abs(system.constraints(q, args))) * jnp.max(1 + jnp.abs(velocity))
         )
-        return guess, (system, z, h, scale, constraint_unit, args)
+        return guess, _StepData(system, z, h, scale, constraint_unit, args)
 
     def residual(self, unknowns, data, discrete_gradient=gonzalez):
-        system, z, h, scale, constraint_unit, args = data
+        system, z, h, scale, args = data.system, data.z, data.h, data.scale, data.args
         (n2,) = z.shape
         n = n2 // 2
         u, impulse = unknowns[:n2], unknowns[n2:]
@@ -88,7 +100,7 @@ class GonzalezF(AbstractMethod):
         flow = jnp.concatenate([gradient[n:], -gradient[:n]])
         force = jnp.concatenate([jnp.zeros((n,), z.dtype), a.T @ impulse])
         return jnp.concatenate(
-            [u - (h * flow + force) / scale, (a @ gradient[n:]) / constraint_unit]
+            [u - (h * flow + force) / scale, (a @ gradient[n:]) / data.constraint_unit]
         )
 
     def root_find_residual(self, unknowns, data):
@@ -100,7 +112,6 @@ class GonzalezF(AbstractMethod):
         return self.residual(unknowns, data, midpoint_gradient)
 
     def complete(self, unknowns, data):
-        _, z, _, scale, _, _ = data
-        n = z.shape[0] // 2
-        z1 = z + scale * unknowns[: 2 * n]
+        n = data.z.shape[0] // 2
+        z1 = data.z + data.scale * unknowns[: 2 * n]
         return (z1[:n], z1[n:]), None

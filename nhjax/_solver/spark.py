@@ -2,7 +2,7 @@ r"""SPARK: additive partitioned Runge-Kutta methods for the index-2 DAE of a
 nonholonomic system (Jay), driven by a `SPARKTableau`; by default the 2-stage Lobatto
 IIIA-B-C-C*-D method of the paper's §4.1 comparison."""
 
-from typing import ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.lax as lax
@@ -16,6 +16,21 @@ from ._spark_tableau import (
     SPARKTableau as SPARKTableau,
 )
 from .base import AbstractMethod, increment_scale
+
+
+class _StepData(NamedTuple):
+    """What the residual of one SPARK step needs (`SPARK.setup`): the start $(q, p)$,
+    the step, and the scales of the unknowns and equations."""
+
+    system: NonholonomicSystem
+    q: Any
+    p: Any
+    h: Any
+    scale_q: Any
+    scale_p: Any
+    impulse_scale: Any
+    constraint_scale: Any
+    args: Any
 
 
 class SPARK(AbstractMethod):
@@ -137,18 +152,18 @@ class SPARK(AbstractMethod):
         ) / scale_p
         guess_impulse = jnp.broadcast_to(h * multiplier / impulse_scale, (s, k))
         guess = jnp.concatenate([guess_q.ravel(), guess_p.ravel(), guess_impulse.ravel()])
-        data = (system, q, p, h, scale_q, scale_p, impulse_scale, constraint_scale, args)
-        return guess, data
+        return guess, _StepData(system, q, p, h, scale_q, scale_p, impulse_scale, constraint_scale, args)
 
     def _stages(self, unknowns, data):
         """The stage values, the derivatives of H there, the constraint impulses
         $A(Q_j)^T h\\Lambda_j$ and the end point."""
-        system, q, p, h, scale_q, scale_p, impulse_scale, _, args = data
+        q, p, h, scale_q, scale_p = data.q, data.p, data.h, data.scale_q, data.scale_p
+        system, args = data.system, data.args
         s, n = self.tableau.stages, q.shape[0]
         b = self._coefficients(q.dtype)[0]
         u_q = unknowns[: s * n].reshape(s, n)
         u_p = unknowns[s * n : 2 * s * n].reshape(s, n)
-        impulse = unknowns[2 * s * n :].reshape(s, -1) * impulse_scale
+        impulse = unknowns[2 * s * n :].reshape(s, -1) * data.impulse_scale
         stage_q = q + scale_q * u_q
         stage_p = p + scale_p * u_p
 
@@ -163,13 +178,13 @@ class SPARK(AbstractMethod):
         return (u_q, u_p), (velocity, force, reaction, g), (q1, p1)
 
     def residual(self, unknowns, data):
-        system, q, _, h, scale_q, scale_p, _, constraint_scale, args = data
-        _, velocity_tableau, force_tableau, constraint_tableau, weights = self._coefficients(q.dtype)
+        h, scale_q, scale_p, constraint_scale = data.h, data.scale_q, data.scale_p, data.constraint_scale
+        _, velocity_tableau, force_tableau, constraint_tableau, weights = self._coefficients(data.q.dtype)
         (u_q, u_p), (velocity, force, reaction, g), (q1, p1) = self._stages(unknowns, data)
         stage_q = u_q - h * (velocity_tableau @ velocity) / scale_q
         stage_p = u_p - (h * (force_tableau @ force) + constraint_tableau @ reaction) / scale_p
         stage_constraint = (weights @ g) / constraint_scale
-        end_constraint = system.constraint_residual((q1, p1), args) / constraint_scale
+        end_constraint = data.system.constraint_residual((q1, p1), data.args) / constraint_scale
         return jnp.concatenate(
             [stage_q.ravel(), stage_p.ravel(), stage_constraint.ravel(), end_constraint]
         )
