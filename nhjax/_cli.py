@@ -5,9 +5,11 @@ import math
 import os
 import pathlib
 import shutil
+import signal
 import sys
 import tempfile
 import textwrap
+import threading
 import time
 import warnings
 
@@ -296,16 +298,30 @@ def main(argv=None) -> int:
     reproduce.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="show progress bars (default on)")
 
     arguments = parser.parse_args(argv)
+    # Ctrl-C leaves from the signal handler itself: a KeyboardInterrupt raised while
+    # Python runs a callback (JAX's garbage-collection hook, say) is printed and dropped,
+    # and the run would go on. An ignored SIGINT (nohup) stays ignored.
+    previous = signal.getsignal(signal.SIGINT)
+    handles = threading.current_thread() is threading.main_thread() and previous not in (signal.SIG_IGN, None)
+    if handles:
+        signal.signal(signal.SIGINT, _leave_on_interrupt)
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             return _run_command(arguments, parser, simulate)
     except KeyboardInterrupt:
-        # Leave at once: unwinding the interpreter while XLA is compiling can crash it.
-        # Finished chunks are on disk, and a rerun continues from them.
-        print("\nnhjax: interrupted", file=sys.stderr, flush=True)
-        sys.stdout.flush()
-        os._exit(130)
+        _leave_on_interrupt()
+    finally:
+        if handles:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _leave_on_interrupt(*_) -> None:
+    """Leave at once: unwinding the interpreter while XLA is compiling can crash it.
+    Finished chunks are on disk, and a rerun continues from them."""
+    print("\nnhjax: interrupted", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(130)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
