@@ -163,8 +163,7 @@ def gonzalez(
     reverse-mode program through a GONZALEZ-R run a quarter larger to compile; a step's
     values come from `gonzalez_values`, which has no Taylor form.
     """
-    midpoint = 0.5 * (x + x1)
-    return gonzalez_correction(f, jax.grad(f)(midpoint, args), x, x1, args)
+    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args)
 
 
 def midpoint_gradient(
@@ -193,7 +192,7 @@ def gonzalez_values(
     this one has no branch, and under `vmap` no third derivative evaluated by every
     trajectory at every call. For a caller that never differentiates it: the chord
     iteration's residual (`nhjax.AbstractMethod.root_find_residual`)."""
-    return gonzalez_correction(f, jax.grad(f)(0.5 * (x + x1), args), x, x1, args, taylor=False)
+    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, taylor=False)
 
 
 def gonzalez_correction(
@@ -219,9 +218,10 @@ def gonzalez_correction(
     the result (`gonzalez_values`).
     """
     delta = x1 - x
-    zero = delta @ delta == 0
+    squared_length = delta @ delta
+    zero = squared_length == 0
     numerator = f(x1, args) - (f(x, args) if f_x is None else f_x) - gradient @ delta
-    printed = (numerator / jnp.where(zero, 1.0, delta @ delta)) * jnp.where(zero, 0.0, delta)
+    printed = (numerator / jnp.where(zero, 1.0, squared_length)) * jnp.where(zero, 0.0, delta)
     if not taylor:
         return gradient + printed
     length = safe_norm(delta)
