@@ -11,7 +11,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
-from ._integrate import _trace_floats, check_args, check_step_counts, check_step_size, integrate, Solution
+from ._integrate import trace_floats, check_args, check_step_counts, check_step_size, integrate, Solution
 from ._results import RESULTS
 from ._system import AbstractSystem
 
@@ -90,7 +90,7 @@ def integrate_ensemble(
         padded,
         dt,
         t0,
-        _trace_floats(args),
+        trace_floats(args),
         check_constraint,
         mesh=mesh,
         n_steps=int(n_steps),

@@ -24,7 +24,7 @@ from ._linalg import safe_norm
 
 
 def _reflectors(a_t, signs):
-    r"""The unit Householder vectors (as rows, zero above their pivot), R, the pivots
+    r"""The unit Householder vectors (as rows, zero above their pivot), the pivots
     $|\tilde w_j|/\sqrt2$, R's diagonal magnitudes |x_j|, and the signs used."""
     n, k = a_t.shape
     r = a_t
@@ -43,7 +43,7 @@ def _reflectors(a_t, signs):
         pivots.append(jnp.sqrt(jnp.maximum(length_sq, 0.0) / 2))
         norms.append(norm)
         used.append(sign)
-    return vectors, r, jnp.stack(pivots), jnp.stack(norms), jnp.stack(used)
+    return vectors, jnp.stack(pivots), jnp.stack(norms), jnp.stack(used)
 
 
 def householder_pivots(
@@ -53,26 +53,14 @@ def householder_pivots(
     factorisation with sign choices `signs` (`None`: the stable ones), and
     $|x_j| = |R_{jj}|$, the distance of column $j$ from the span of the columns before
     it, which does not depend on the signs; the frame is not formed."""
-    _, _, pivots, norms, _ = _reflectors(a_t, signs)
+    _, pivots, norms, _ = _reflectors(a_t, signs)
     return pivots, norms
 
 
 def householder_signs(a_t: Float[Array, "n k"]) -> Float[Array, " k"]:
     """The stable sign choices $s_j = \\mathrm{sign}(x_1)$ for the factorisation of
     `a_t` ($+1$ where $x_1 = 0$)."""
-    return _reflectors(a_t, None)[4]
-
-
-def householder_qr(
-    a_t: Float[Array, "n k"], signs: Float[Array, " k"] | None = None
-) -> tuple[Float[Array, "n n"], Float[Array, "n k"]]:
-    """$A^T = QR$ with $Q = H_1 \\cdots H_k$ orthogonal and $R$ upper triangular,
-    $R_{jj} = -s_j|x_j|$. `signs=None` uses `householder_signs(a_t)`."""
-    vectors, r, _, _, _ = _reflectors(a_t, signs)
-    q = jnp.eye(a_t.shape[0], dtype=a_t.dtype)
-    for w in reversed(vectors):
-        q = q - 2 * jnp.outer(w, w @ q)
-    return q, r
+    return _reflectors(a_t, None)[3]
 
 
 def householder_frame(
@@ -86,7 +74,7 @@ def householder_frame(
     Only the last $m$ columns are formed: $X = H_1 \cdots H_k [0; I_m]$.
     """
     n, k = a_t.shape
-    vectors, _, pivots, _, _ = _reflectors(a_t, signs)
+    vectors, pivots, _, _ = _reflectors(a_t, signs)
     frame = jnp.eye(n, n - k, -k, dtype=a_t.dtype)
     for w in reversed(vectors):
         frame = frame - 2 * jnp.outer(w, w @ frame)

@@ -58,7 +58,7 @@ class Solution(eqx.Module):
     stats: dict[str, Array]
 
 
-def _trace_floats(args: PyTree) -> PyTree:
+def trace_floats(args: PyTree) -> PyTree:
     """Python floats in `args` become arrays, so that changing them does not recompile
     and gradients reach them; ints, bools and everything else stay static."""
     return jax.tree.map(
@@ -132,7 +132,7 @@ def _save_observables(system):
     return save
 
 
-def _assemble(ts, saved, result: RESULTS, stats, sources) -> Solution:
+def _solution_from_saves(ts, saved, result: RESULTS, stats, sources) -> Solution:
     """The `Solution` from diffrax's saves.
 
     A save whose state or observables (energy, constraint residual) are not finite is a
@@ -258,7 +258,7 @@ def integrate(
         y0,
         dt,
         t0,
-        _trace_floats(args),
+        trace_floats(args),
         jnp.asarray(check_constraint, dtype=bool),
         _adjoint_or_default(adjoint),
         n_steps=int(n_steps),
@@ -354,7 +354,7 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
         method_failure = RESULTS.successful
         stats.update(root_find_steps=None, max_root_find_steps=None)
     result = first_failure(initial_result, method_failure, from_diffrax(solution.result))
-    return _assemble(solution.ts, solution.ys, result, stats, (y0, dt, t0, args))
+    return _solution_from_saves(solution.ts, solution.ys, result, stats, (y0, dt, t0, args))
 
 
 def integrate_adaptive(
@@ -417,7 +417,7 @@ def integrate_adaptive(
         t0,
         t1,
         save_at,
-        _trace_floats(args),
+        trace_floats(args),
         _adjoint_or_default(adjoint),
         rtol=float(rtol),
         atol=float(atol),
@@ -464,4 +464,4 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, r
         num_rejected_steps=solution.stats["num_rejected_steps"],
     )
     ts = jnp.where(cannot_start, save_at, solution.ts)
-    return _assemble(ts, solution.ys, result, stats, (y0, t0, t1, save_at, args))
+    return _solution_from_saves(ts, solution.ys, result, stats, (y0, t0, t1, save_at, args))

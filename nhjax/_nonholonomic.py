@@ -19,7 +19,7 @@ from ._linalg import solve_spd
 from ._householder import householder_frame, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
 from ._adapted import adapted_structure, adapted_structure_times
-from ._system import AbstractSystem, SkewGradientSystem, _require_floating_vector, _require_scalar
+from ._system import AbstractSystem, SkewGradientSystem, require_floating_vector, require_scalar
 
 
 Derivative = Literal["autodiff", "central_difference"]
@@ -193,12 +193,12 @@ class NonholonomicSystem(AbstractSystem):
                 f"{type(y0).__name__}."
             )
         q, p = y0
-        _require_floating_vector("q", q)
-        _require_floating_vector("p", p)
+        require_floating_vector("q", q)
+        require_floating_vector("p", p)
         if jnp.shape(q) != jnp.shape(p):
             raise ValueError(f"q and p must have the same shape, got {jnp.shape(q)} and {jnp.shape(p)}.")
         (n,) = jnp.shape(q)
-        _require_scalar("hamiltonian(q, p, args)", jax.eval_shape(self.hamiltonian, q, p, args))
+        require_scalar("hamiltonian(q, p, args)", jax.eval_shape(self.hamiltonian, q, p, args))
         a = jax.eval_shape(self.constraints, q, args)
         if len(a.shape) != 2 or a.shape[1] != n or not 1 <= a.shape[0] < n:
             raise ValueError(
@@ -365,5 +365,6 @@ class ReducedSystem(eqx.Module):
     def structure(self, zeta, args) -> Float[Array, "N N"]:
         return self.structure_and_gradient(zeta, args)[0]
 
-    def vf(self, zeta, args) -> Float[Array, " N"]:
+    def vector_field(self, zeta, args) -> Float[Array, " N"]:
+        r"""$\dot\zeta = \Pi(\zeta)\nabla\mathcal{H}(\zeta)$."""
         return adapted_structure_times(*self.frame_bracket_and_gradient(zeta, args))

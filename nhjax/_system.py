@@ -54,7 +54,7 @@ class AbstractSystem(diffrax.AbstractTerm):
         return jax.tree.map(lambda v: v * control, vf)
 
 
-def _require_floating_vector(name: str, x) -> None:
+def require_floating_vector(name: str, x) -> None:
     if not (eqx.is_array(x) or hasattr(x, "shape")):
         raise ValueError(
             f"{name} must be a 1-D array, got a {type(x).__name__}"
@@ -69,7 +69,7 @@ def _require_floating_vector(name: str, x) -> None:
         raise ValueError(f"{name} must be floating point, got dtype {jnp.result_type(x)}.")
 
 
-def _require_scalar(name: str, struct) -> None:
+def require_scalar(name: str, struct) -> None:
     if getattr(struct, "shape", None) != ():
         raise ValueError(
             f"{name} must return a scalar, got {getattr(struct, 'shape', struct)}."
@@ -103,9 +103,9 @@ class SkewGradientSystem(AbstractSystem):
         return self.hamiltonian(y, args)
 
     def check_shapes(self, y0, args):
-        _require_floating_vector("The state of a SkewGradientSystem", y0)
+        require_floating_vector("The state of a SkewGradientSystem", y0)
         (n,) = jnp.shape(y0)
-        _require_scalar("hamiltonian(x, args)", jax.eval_shape(self.hamiltonian, y0, args))
+        require_scalar("hamiltonian(x, args)", jax.eval_shape(self.hamiltonian, y0, args))
         structure = jax.eval_shape(self.structure, y0, args)
         if structure.shape != (n, n):
             raise ValueError(

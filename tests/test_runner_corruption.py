@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import nhjax as nh
-from nhjax._runner import _with_identity, run_chunked
+from nhjax._chunk_files import with_identity
+from nhjax._runner import run_chunked
 
 
 GEARBOX = nh.examples.gearbox()
@@ -125,7 +126,7 @@ def test_a_chunk_that_does_not_start_where_the_previous_ended_is_recomputed(runs
     arrays["y_1"][-1] *= 1 + 1e-9
     identity = {key[len("chunk_"):]: arrays.pop(key).item() for key in list(arrays) if key.startswith("chunk_")}
     arrays.pop("checksum")
-    np.savez(copy / "chunk_00000.npz", **_with_identity(arrays, identity))
+    np.savez(copy / "chunk_00000.npz", **with_identity(arrays, identity))
     with pytest.warns(RuntimeWarning, match=r"chunk_00002\.npz starts from another state"):
         resumed = _chunked(copy)
     assert _bits(resumed) != _bits(solution)  # it follows the changed chunk 0

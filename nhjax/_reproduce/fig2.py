@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import nhjax as nh
-from nhjax.examples._chaplygin_sleigh import bracket_coefficient
 from ._common import check, Context, METHODS, new_figure, roundoff, save_figure, verdict
 
 
@@ -81,7 +80,7 @@ def run(context: Context) -> dict:
     settled_rho2 = float(np.hypot(RHO1[1], RHO2))
     image = plot(context.out / "fig2.png", paths, settled_rho2)
 
-    stability_limit = float(abs(2 / (bracket_coefficient(sleigh.args) * RHO2)))
+    stability_limit = float(abs(2 / (sleigh.bracket_coefficient(sleigh.args) * RHO2)))
     bound = roundoff(sizes.sleigh_steps)
     per_method, checks = {}, []
     for name, (times, adapted, energy, constraint) in paths.items():

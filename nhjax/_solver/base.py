@@ -15,12 +15,12 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array, Int, PyTree
+from jaxtyping import Array, Float, Int, PyTree, Scalar
 
 from .._linalg import inverse
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
-from .chord import Chord
+from .chord import PresetChord
 
 
 def no_gradient(tree: PyTree) -> PyTree:
@@ -95,14 +95,14 @@ class MethodState(AbstractMethodState):
 
 
 def default_root_finder(dtype) -> optx.AbstractRootFinder:
-    """The chord iteration (`nhjax._solver.chord.Chord`) to a few ulps of the dtype.
+    """The chord iteration (`nhjax._solver.chord.PresetChord`) to a few ulps of the dtype.
 
     Every nhjax method poses its root find in scaled unknowns (`increment_scale`), so
     one absolute tolerance serves every system. The
     iteration stops when both the last correction and the residual are below it, and
     returns the corrected iterate, whose error is then a small multiple of that.
     """
-    return Chord(atol=64 * float(jnp.finfo(dtype).eps))
+    return PresetChord(atol=64 * float(jnp.finfo(dtype).eps))
 
 
 def increment_scale(x: Array) -> Array:
@@ -153,26 +153,28 @@ class AbstractMethod(diffrax.AbstractSolver):
     root_finder: eqx.AbstractVar[optx.AbstractRootFinder | None]
     root_find_max_steps: eqx.AbstractVar[int]
 
-    def initial_carry(self, system, y0, args) -> PyTree:
+    def initial_carry(self, system: AbstractSystem, y0: PyTree[Array], args: PyTree) -> PyTree:
         del system, y0, args
         return None
 
-    def setup(self, system, h, y0, args, carry) -> tuple[Array, Any]:
+    def setup(
+        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, carry: PyTree
+    ) -> tuple[Float[Array, " u"], Any]:
         raise NotImplementedError
 
-    def residual(self, unknowns, data) -> Array:
+    def residual(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, " u"]:
         raise NotImplementedError
 
-    def root_find_residual(self, unknowns, data) -> Array:
+    def root_find_residual(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, " u"]:
         return self.residual(unknowns, data)
 
-    def simplified_residual(self, unknowns, data) -> Array:
+    def simplified_residual(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, " u"]:
         return self.residual(unknowns, data)
 
-    def chord_jacobian(self, unknowns, data) -> Array:
+    def chord_jacobian(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, "u u"]:
         return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
-    def complete(self, unknowns, data) -> tuple[Any, PyTree]:
+    def complete(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], PyTree]:
         raise NotImplementedError
 
     def init(self, terms, t0, t1, y0, args) -> MethodState:
@@ -211,13 +213,17 @@ class AbstractMethod(diffrax.AbstractSolver):
         available as a method: `self` for a symmetric method."""
         return self if self.is_symmetric() else None
 
-    def step(self, terms, t0, t1, y0, args, solver_state: MethodState, made_jump):
+    def step(
+        self, terms, t0: Scalar, t1: Scalar, y0: PyTree[Array], args: PyTree, solver_state: MethodState, made_jump
+    ) -> tuple[PyTree[Array], None, dict[str, PyTree[Array]], MethodState, diffrax.RESULTS]:
         del made_jump
         system, h = self.system_and_step(terms, t0, t1)
         y1, solver_state, failure = self.advance(system, h, y0, args, solver_state)
         return step_return(y0, y1, solver_state, failure)
 
-    def advance(self, system, h, y0, args, solver_state: MethodState) -> tuple[PyTree, MethodState, RESULTS]:
+    def advance(
+        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, solver_state: MethodState
+    ) -> tuple[PyTree[Array], MethodState, RESULTS]:
         """One step of signed size `h` from `y0`: the new state (not yet replaced by NaN
         on failure, see `step_return`), the method state after it, and the step's code
         (`step_failure`)."""
@@ -229,7 +235,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         evaluations_finite = jnp.all(jnp.isfinite(guess))
         singular = jnp.array(False)
         residual = self.residual
-        if isinstance(root_finder, Chord):
+        if isinstance(root_finder, PresetChord):
             residual = self.root_find_residual
             jacobian = self.chord_jacobian(guess, fixed_data)
             chord_inverse = inverse(jacobian)
@@ -245,7 +251,7 @@ class AbstractMethod(diffrax.AbstractSolver):
             max_steps=self.root_find_max_steps,
             throw=False,
         )
-        if isinstance(root_finder, Chord):
+        if isinstance(root_finder, PresetChord):
             residual_size = solution.state.residual_size
         else:
             residual_size = jnp.max(jnp.abs(residual(solution.value, fixed_data)))
@@ -256,6 +262,18 @@ class AbstractMethod(diffrax.AbstractSolver):
             evaluations_finite, all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
         )
         return y1, solver_state.record(solution.stats["num_steps"], failure, carry), failure
+
+
+class AbstractSymmetricSecondOrderMethod(AbstractMethod):
+    r"""A method that is second order and its own adjoint ($\Phi_{-h} = \Phi_h^{-1}$):
+    GONZALEZ-R, GONZALEZ-F, SI-DLA and I-DLA."""
+
+    def order(self, terms) -> int:
+        del terms
+        return 2
+
+    def is_symmetric(self) -> bool:
+        return True
 
 
 def step_return(y0, y1, solver_state, failure: RESULTS):

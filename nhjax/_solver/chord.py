@@ -35,8 +35,8 @@ class _ChordState(eqx.Module):
     steps: Int[Array, ""]
 
 
-class Chord(optx.AbstractRootFinder):
-    r"""Chord iteration for a root of `fn(u, args)`, `u` a 1-D array.
+class PresetChord(optx.AbstractRootFinder):
+    r"""PresetChord iteration for a root of `fn(u, args)`, `u` a 1-D array.
 
     The inverse Jacobian approximation is `options["inverse"]` when the caller supplies
     one (formed explicitly, `nhjax._linalg.inverse`: one matrix-vector product per

@@ -8,7 +8,7 @@ import optimistix as optx
 
 from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient
 from .._nonholonomic import NonholonomicSystem
-from .base import AbstractMethod, increment_scale, positive_unit
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit
 
 
 class _StepData(NamedTuple):
@@ -23,7 +23,7 @@ class _StepData(NamedTuple):
     args: Any
 
 
-class GonzalezF(AbstractMethod):
+class GonzalezF(AbstractSymmetricSecondOrderMethod):
     r"""GONZALEZ-F, the direct method (simpDirect) on $z = (q, p)$:
 
     $$\frac{z' - z}{h} = J\,\bar\nabla_2 H(z, z') + \begin{pmatrix} 0 \\ A(\bar q)^T\lambda
@@ -51,13 +51,6 @@ class GonzalezF(AbstractMethod):
 
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
-
-    def order(self, terms):
-        del terms
-        return 2
-
-    def is_symmetric(self) -> bool:
-        return True
 
     def composition_obstacle(self) -> str:
         """Symmetric, yet composition does not raise its order: the constraint holds at

@@ -30,7 +30,7 @@ from .._adapted import adapted_structure_times
 from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
-from .base import AbstractMethod, increment_scale, no_gradient
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient
 
 
 def _metric(system: NonholonomicSystem, y0, args):
@@ -74,7 +74,7 @@ class _StepData(NamedTuple):
     previous_step: Array
 
 
-class GonzalezR(AbstractMethod):
+class GonzalezR(AbstractSymmetricSecondOrderMethod):
     r"""GONZALEZ-R: energy- and constraint-preserving integration of a
     `NonholonomicSystem` from its $H(q, p)$ and $A(q)$ only (§3.3). One step:
 
@@ -119,13 +119,6 @@ class GonzalezR(AbstractMethod):
 
     def __check_init__(self):
         check_derivative(self.derivative)
-
-    def order(self, terms):
-        del terms
-        return 2
-
-    def is_symmetric(self) -> bool:
-        return True
 
     def _reduced(self, system, signs, h, y0, args):
         step = None
@@ -176,7 +169,7 @@ class GonzalezR(AbstractMethod):
         velocity = lax.cond(
             extrapolates,
             lambda: carry.last_velocity + reach * (carry.last_velocity - carry.earlier_velocity),
-            lambda: no_gradient(reduced).vf(*no_gradient((zeta, args))),
+            lambda: no_gradient(reduced).vector_field(*no_gradient((zeta, args))),
         )
         scale = increment_scale(zeta)
         guess = h * velocity / scale

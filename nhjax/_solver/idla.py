@@ -1,7 +1,7 @@
 r"""I-DLA: the implicit reversible discrete Lagrange--d'Alembert integrator with the
 midpoint discrete Lagrangian, the second comparison method of §4.1."""
 
-from typing import ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.lax as lax
@@ -10,10 +10,26 @@ import optimistix as optx
 
 from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
-from .base import AbstractMethod, increment_scale, positive_unit
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit
 
 
-class IDLA(AbstractMethod):
+class _StepData(NamedTuple):
+    """What the residual of one step needs (`IDLA.setup`): the start, the step, the
+    scales of the unknowns (`q_scale` for the increment, `p_unit` for the impulse), the
+    unit of the constraint matrix and that of the velocity in the constraint equation."""
+
+    system: NonholonomicSystem
+    args: Any
+    h: Any
+    q0: Any
+    p0: Any
+    q_scale: Any
+    a_unit: Any
+    p_unit: Any
+    v_unit: Any
+
+
+class IDLA(AbstractSymmetricSecondOrderMethod):
     r"""I-DLA: the reversible discrete Lagrange--d'Alembert integrator with the midpoint
     discrete Lagrangian and the constraint force split evenly between the two discrete
     Legendre transforms.
@@ -75,13 +91,6 @@ class IDLA(AbstractMethod):
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
 
-    def order(self, terms):
-        del terms
-        return 2
-
-    def is_symmetric(self) -> bool:
-        return True
-
     def initial_carry(self, system: NonholonomicSystem, y0, args):
         return system.multiplier(y0, args)
 
@@ -102,47 +111,34 @@ class IDLA(AbstractMethod):
         p1 = p0 - h * jax.grad(system.hamiltonian)(q_half, p0, args) + a_half.T @ impulse
         q1 = q_half + 0.5 * h * system.velocity(q_half, p1, args)
         guess = jnp.concatenate([(q1 - q0) / q_scale, impulse / p_unit])
-        data = dict(
-            system=system,
-            args=args,
-            h=h,
-            q0=q0,
-            p0=p0,
-            q_scale=q_scale,
-            a_unit=a_unit,
-            p_unit=p_unit,
-            v_unit=v_unit,
-        )
-        return guess, data
+        return guess, _StepData(system, args, h, q0, p0, q_scale, a_unit, p_unit, v_unit)
 
-    def _equations(self, u, data):
+    def _equations(self, u, data: _StepData):
         """The scaled position equation's right-hand side, and $(q_1, p_1)$."""
-        system, args, h = data["system"], data["args"], data["h"]
-        n = data["q0"].shape[0]
-        increment = data["q_scale"] * u[:n]
-        impulse = data["p_unit"] * u[n:]
-        q1 = data["q0"] + increment
-        q_mid = data["q0"] + 0.5 * increment
+        system, args, h = data.system, data.args, data.h
+        n = data.q0.shape[0]
+        increment = data.q_scale * u[:n]
+        impulse = data.p_unit * u[n:]
+        q1 = data.q0 + increment
+        q_mid = data.q0 + 0.5 * increment
         inverse = system.inverse_metric(q_mid, args)
         mean_momentum = solve_spd(inverse, increment / h)
         force = -jax.grad(system.hamiltonian)(q_mid, mean_momentum, args)
-        reaction = (system.constraints(q_mid, args) / data["a_unit"]).T @ impulse
-        position = h * inverse @ (data["p0"] + 0.5 * h * force + 0.5 * reaction) / data["q_scale"]
-        p1 = data["p0"] + h * force + reaction
+        reaction = (system.constraints(q_mid, args) / data.a_unit).T @ impulse
+        position = h * inverse @ (data.p0 + 0.5 * h * force + 0.5 * reaction) / data.q_scale
+        p1 = data.p0 + h * force + reaction
         return position, q1, p1
 
-    def residual(self, u, data):
-        system, args = data["system"], data["args"]
-        n = data["q0"].shape[0]
+    def residual(self, u, data: _StepData):
+        n = data.q0.shape[0]
         position, q1, p1 = self._equations(u, data)
-        a1 = system.constraints(q1, args) / data["a_unit"]
-        constraint = a1 @ system.velocity(q1, p1, args) / data["v_unit"]
+        a1 = data.system.constraints(q1, data.args) / data.a_unit
+        constraint = a1 @ data.system.velocity(q1, p1, data.args) / data.v_unit
         return jnp.concatenate([u[:n] - position, constraint])
 
-    def complete(self, u, data):
+    def complete(self, u, data: _StepData):
         _, q1, p1 = self._equations(u, data)
-        h = data["h"]
         n = q1.shape[0]
-        safe_h = jnp.where(h == 0, jnp.ones_like(h), h)
-        multiplier = data["p_unit"] * u[n:] / (safe_h * data["a_unit"])
+        safe_h = jnp.where(data.h == 0, jnp.ones_like(data.h), data.h)
+        multiplier = data.p_unit * u[n:] / (safe_h * data.a_unit)
         return (q1, p1), multiplier

@@ -2,7 +2,7 @@ r"""SI-DLA: the semi-implicit reversible discrete Lagrange--d'Alembert integrato
 McLachlan & Perlmutter (2006, J. Nonlinear Sci. 16:283, their eq. (4.18)), the first
 comparison method of §4.1."""
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -12,10 +12,35 @@ import optimistix as optx
 
 from .._dependence import velocity_depends_on_position
 from .._nonholonomic import NonholonomicSystem
-from .base import AbstractMethod, increment_scale, positive_unit
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit
 
 
-class SIDLA(AbstractMethod):
+class _StepData(eqx.Module):
+    r"""What the residual of one step needs (`SIDLA.setup`): the step, $q_{1/2}$, the
+    normalised $A(q_{1/2})$ and its unit, the units of the impulse and of the velocity
+    in the constraint equation, $\partial_qH(q_{1/2}, p_0)$, and which path the step
+    takes (`constant_metric`, static: the two paths are different programs). The
+    constant-metric path reads the kick $p_0 - h\,\partial_qH(q_{1/2}, p_0)$; the
+    general one the start and the scales of its increments."""
+
+    system: NonholonomicSystem
+    args: Any
+    h: Any
+    q_half: Any
+    a_half: Any
+    a_unit: Any
+    p_unit: Any
+    v_unit: Any
+    force_half: Any
+    constant_metric: bool = eqx.field(static=True)
+    kick: Any = None
+    q0: Any = None
+    p0: Any = None
+    q_scale: Any = None
+    p_scale: Any = None
+
+
+class SIDLA(AbstractSymmetricSecondOrderMethod):
     r"""SI-DLA, McLachlan & Perlmutter's semi-implicit reversible DLA integrator, their
     eq. (4.18), in canonical coordinates:
 
@@ -77,13 +102,6 @@ class SIDLA(AbstractMethod):
                 f"constant_metric must be True, False or None, got {self.constant_metric!r}."
             )
 
-    def order(self, terms):
-        del terms
-        return 2
-
-    def is_symmetric(self) -> bool:
-        return True
-
     def metric_is_constant(self, system: NonholonomicSystem, y0, args) -> bool:
         """Whether a step takes the $k$-unknown path (see `constant_metric`)."""
         if self.constant_metric is not None:
@@ -117,55 +135,52 @@ class SIDLA(AbstractMethod):
             force_half=force_half,
         )
         if self.metric_is_constant(system, y0, args):
-            kick = p0 - h * force_half
-            return impulse_guess, dict(common, constant=True, kick=kick)
+            return impulse_guess, _StepData(**common, constant_metric=True, kick=p0 - h * force_half)
         q_scale = increment_scale(q0)
         # The constant-metric formulas as the predictor: O(h^3) from the root.
         p1 = p0 - h * force_half + common["a_half"].T @ (p_unit * impulse_guess)
         q1 = q_half + 0.5 * h * system.velocity(q_half, p1, args)
         guess = jnp.concatenate([(q1 - q0) / q_scale, (p1 - p0) / p_scale, impulse_guess])
-        data = dict(common, constant=False, q0=q0, p0=p0, q_scale=q_scale, p_scale=p_scale)
+        data = _StepData(**common, constant_metric=False, q0=q0, p0=p0, q_scale=q_scale, p_scale=p_scale)
         return guess, data
 
-    def _constant_metric_state(self, u, data):
+    def _constant_metric_state(self, u, data: _StepData):
         """$(q_1, p_1)$ from the scaled impulse on the $k$-unknown path."""
-        system, args, h = data["system"], data["args"], data["h"]
-        p1 = data["kick"] + data["a_half"].T @ (data["p_unit"] * u)
-        v1 = system.velocity(data["q_half"], p1, args)
-        return data["q_half"] + 0.5 * h * v1, p1, v1
+        p1 = data.kick + data.a_half.T @ (data.p_unit * u)
+        v1 = data.system.velocity(data.q_half, p1, data.args)
+        return data.q_half + 0.5 * data.h * v1, p1, v1
 
-    def _split(self, u, data):
-        n = data["q0"].shape[0]
-        q1 = data["q0"] + data["q_scale"] * u[:n]
-        p1 = data["p0"] + data["p_scale"] * u[n : 2 * n]
+    def _split(self, u, data: _StepData):
+        n = data.q0.shape[0]
+        q1 = data.q0 + data.q_scale * u[:n]
+        p1 = data.p0 + data.p_scale * u[n : 2 * n]
         return q1, p1, u[2 * n :]
 
-    def _constraint(self, q1, v1, data):
-        a1 = data["system"].constraints(q1, data["args"]) / data["a_unit"]
-        return a1 @ v1 / data["v_unit"]
+    def _constraint(self, q1, v1, data: _StepData):
+        a1 = data.system.constraints(q1, data.args) / data.a_unit
+        return a1 @ v1 / data.v_unit
 
-    def residual(self, u, data):
-        system, args, h = data["system"], data["args"], data["h"]
-        if data["constant"]:
+    def residual(self, u, data: _StepData):
+        if data.constant_metric:
             q1, _, v1 = self._constant_metric_state(u, data)
             return self._constraint(q1, v1, data)
+        system, args, h = data.system, data.args, data.h
         q1, p1, impulse = self._split(u, data)
         v1 = system.velocity(q1, p1, args)
-        force = data["force_half"] + jax.grad(system.hamiltonian)(data["q_half"], p1, args)
-        position = (data["q_half"] - data["q0"] + 0.5 * h * v1) / data["q_scale"]
-        momentum = (-0.5 * h * force + data["a_half"].T @ (data["p_unit"] * impulse)) / data["p_scale"]
+        force = data.force_half + jax.grad(system.hamiltonian)(data.q_half, p1, args)
+        position = (data.q_half - data.q0 + 0.5 * h * v1) / data.q_scale
+        momentum = (-0.5 * h * force + data.a_half.T @ (data.p_unit * impulse)) / data.p_scale
         n = q1.shape[0]
         return jnp.concatenate(
             [u[:n] - position, u[n : 2 * n] - momentum, self._constraint(q1, v1, data)]
         )
 
-    def complete(self, u, data):
-        if data["constant"]:
+    def complete(self, u, data: _StepData):
+        if data.constant_metric:
             q1, p1, _ = self._constant_metric_state(u, data)
             impulse = u
         else:
             q1, p1, impulse = self._split(u, data)
-        h = data["h"]
-        safe_h = jnp.where(h == 0, jnp.ones_like(h), h)
-        multiplier = data["p_unit"] * impulse / (safe_h * data["a_unit"])
+        safe_h = jnp.where(data.h == 0, jnp.ones_like(data.h), data.h)
+        multiplier = data.p_unit * impulse / (safe_h * data.a_unit)
         return (q1, p1), multiplier

@@ -33,9 +33,7 @@ def _rotational_inertia(args):
     return J + m * a**2
 
 
-def bracket_coefficient(args):
-    r"""$C^1_{12} = a\sqrt{m}/(J + ma^2)$, so that $\dot\rho_1 = -C^1_{12}\rho_1\rho_2$,
-    $\dot\rho_2 = C^1_{12}\rho_1^2$ (mom-eq)."""
+def _bracket_coefficient(args):
     _, a, m = _parameters(args)
     return a * jnp.sqrt(m) / _rotational_inertia(args)
 
@@ -72,7 +70,7 @@ def _hamiltonian(x, args):
 
 
 def _structure(x, args):
-    c = bracket_coefficient(args) * x[3]
+    c = _bracket_coefficient(args) * x[3]
     zero = jnp.zeros_like(c)
     bracket = jnp.array([[zero, -c], [c, zero]])
     return adapted_structure(_frame(x[:3], args), bracket)
@@ -127,6 +125,12 @@ class ChaplyginSleigh(eqx.Module):
     @staticmethod
     def metric(q: Float[Array, "3"], args) -> Float[Array, "3 3"]:
         return _metric(q, args)
+
+    @staticmethod
+    def bracket_coefficient(args) -> Float[Array, ""]:
+        r"""$C^1_{12} = a\sqrt{m}/(J + ma^2)$: $\dot\rho_1 = -C^1_{12}\rho_1\rho_2$,
+        $\dot\rho_2 = C^1_{12}\rho_1^2$ (mom-eq)."""
+        return _bracket_coefficient(args)
 
     def initial_state(
         self, x1=-5.0, x2=0.0, theta=0.1, rho1=0.001, rho2=-0.6, dtype=None

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 import nhjax as nh
-from nhjax.examples._chaplygin_sleigh import bracket_coefficient
 
 
 SLEIGH = nh.examples.chaplygin_sleigh(J=8.0, a=1.0, m=1.0)
@@ -39,7 +38,7 @@ def test_linearisation_at_equilibria_matches_proposition(rho2):
         return method.step(system, 0.0, h, x, args, state, False)[0][3:]
 
     jacobian = jax.jacfwd(step)(jnp.array([0.0, rho2]))
-    c = float(bracket_coefficient(args))
+    c = float(SLEIGH.bracket_coefficient(args))
     expected = (2 - h * c * rho2) / (2 + h * c * rho2)
     np.testing.assert_allclose(jacobian, np.diag([expected, 1.0]), atol=1e-12)
     assert (expected < 1) == (rho2 > 0)

@@ -5,7 +5,7 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from nhjax._solver.chord import Chord, STALL_FACTOR
+from nhjax._solver.chord import PresetChord, STALL_FACTOR
 
 
 ATOL = 1e-10
@@ -14,7 +14,7 @@ ROOT = jnp.array([0.3, -1.2, 2.0])
 
 def _solve(fn, inverse, max_steps=30):
     return optx.root_find(
-        fn, Chord(atol=ATOL), jnp.zeros(3), options={"inverse": inverse}, max_steps=max_steps, throw=False
+        fn, PresetChord(atol=ATOL), jnp.zeros(3), options={"inverse": inverse}, max_steps=max_steps, throw=False
     )
 
 
