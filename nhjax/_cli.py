@@ -13,6 +13,8 @@ import threading
 import time
 import warnings
 
+from ._methods import METHODS as _REGISTRY
+
 
 def _demo(arguments) -> int:
     """Integrate the Chaplygin sleigh of Figure 2 and report what is conserved."""
@@ -64,14 +66,8 @@ SYSTEMS = {
     "(x1 = -5, x2 = 0, theta = 0.1, rho1 = 0.001, rho2 = -0.6)",
     "disk": "the rolling disk of §2 (m = r = 1, J_theta = 1/4, J_phi = 1/2) with rho1 = 1.3, rho2 = 0.9",
 }
-METHODS = {  # name: (the paper's name, what it keeps)
-    "gonzalez-r": ("GONZALEZ-R", "§3.3, discrete gradient on the reduced system: energy and constraint to roundoff"),
-    "gonzalez-f": ("GONZALEZ-F", "§3.3, the direct method: energy to roundoff, the constraint not"),
-    "sidla": ("SI-DLA", "constraint to roundoff, energy O(h^2)"),
-    "idla": ("I-DLA", "constraint to roundoff, energy O(h^2)"),
-    "spark": ("SPARK", "2-stage Lobatto IIIA-B-C-C*-D: constraint to roundoff, energy O(h^2)"),
-    "tsit5": ("Tsit5", "fixed steps on the index-1 ODE: the non-geometric baseline"),
-}
+# The methods for the canonical systems the command simulates.
+METHODS = {name: method for name, method in _REGISTRY.items() if not method.adapted}
 FIGURES = ("fig1", "fig2", "fig3", "fig4")
 _DEFAULT_ANGLE = 0.7
 
@@ -106,22 +102,6 @@ def _problem(arguments):
     return disk.canonical, state, disk.args, "rolling disk (§2), rho = (1.3, 0.9)"
 
 
-def _method(name):
-    import diffrax
-
-    import nhjax as nh
-
-    methods = {
-        "gonzalez-r": nh.GonzalezR,
-        "gonzalez-f": nh.GonzalezF,
-        "sidla": nh.SIDLA,
-        "idla": nh.IDLA,
-        "spark": nh.SPARK,
-        "tsit5": diffrax.Tsit5,
-    }
-    return methods[name]()
-
-
 ORDERS = (2, 4, 6, 8)
 
 
@@ -133,7 +113,7 @@ def _composed(method, order: int):
 
 
 def _method_label(arguments) -> str:
-    label = METHODS[arguments.method][0]
+    label = METHODS[arguments.method].name
     return label if arguments.order == 2 else f"{label} composed to order {arguments.order}"
 
 
@@ -146,10 +126,11 @@ def _simulate(arguments, n_steps: int) -> int:
     import numpy as np
 
     import nhjax as nh
-    from ._runner import write_atomically, run_chunked
+    from ._chunk_files import write_atomically
+    from ._runner import run_chunked
 
     system, y0, args, description = _problem(arguments)
-    method = _composed(_method(arguments.method), arguments.order)
+    method = _composed(METHODS[arguments.method].solver, arguments.order)
     out = _output_path(arguments)
     chunks = out.with_name(out.name + ".chunks")
     on_disk = len(list(chunks.glob("chunk_*.npz")))
@@ -259,7 +240,7 @@ def main(argv=None) -> int:
             "where it stopped when rerun with the same arguments.", 80
         ),
         epilog=f"systems:\n{_listing(SYSTEMS)}\n\nmethods:\n"
-        + _listing({name: f"{label} ({text})" for name, (label, text) in METHODS.items()}),
+        + _listing({name: f"{method.name} ({method.description})" for name, method in METHODS.items()}),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     simulate.add_argument("system", choices=SYSTEMS, metavar="SYSTEM", help=f"one of {', '.join(SYSTEMS)} (see below)")

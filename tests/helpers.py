@@ -6,20 +6,43 @@ import numpy as np
 import pytest
 
 import nhjax as nh
+from nhjax._methods import METHODS as REGISTRY
 
 
-# Every nhjax method, by name: the shared properties are tested over this one list.
-# DiscreteGradient integrates skew-gradient (adapted) systems, the others
-# NonholonomicSystems in canonical coordinates.
+# Every nhjax method, by its name in the package's registry (AVF aside: it differs from
+# GONZALEZ only in its discrete gradient, tested in test_discrete_gradient.py), and
+# GONZALEZ-R with its finite-difference option: the shared properties are tested over
+# this one list. GONZALEZ (DiscreteGradient) integrates skew-gradient (adapted)
+# systems, the others NonholonomicSystems in canonical coordinates.
 METHODS = {
-    "discrete-gradient": nh.DiscreteGradient(),
-    "gonzalez-r": nh.GonzalezR(),
-    "gonzalez-r-central-difference": nh.GonzalezR(derivative="central_difference"),
-    "gonzalez-f": nh.GonzalezF(),
-    "sidla": nh.SIDLA(),
-    "idla": nh.IDLA(),
-    "spark": nh.SPARK(),
+    name: method.solver for name, method in REGISTRY.items() if isinstance(method.solver, nh.AbstractMethod)
 }
+del METHODS["avf"]
+METHODS["gonzalez-r-central-difference"] = nh.GonzalezR(derivative="central_difference")
+CANONICAL_METHODS = [name for name in METHODS if name in REGISTRY and not REGISTRY[name].adapted]
+KEEPS_ENERGY = {name for name in CANONICAL_METHODS if REGISTRY[name].keeps_energy}
+KEEPS_CONSTRAINT = {name for name in CANONICAL_METHODS if REGISTRY[name].keeps_constraint}
+
+
+def canonical_starts():
+    """Starts on the paper's systems in canonical coordinates, by name: constant and
+    q-dependent metrics, one and two constraints."""
+    gearbox = nh.examples.gearbox()
+    quartic = nh.examples.chaotic_quartic()
+    sleigh = nh.examples.chaplygin_sleigh()
+    disk = nh.examples.rolling_disk()
+    return {
+        "gearbox, M = I": (gearbox, gearbox.random_initial_state(jax.random.key(0))),
+        "quartic, n = 7": (quartic, quartic.from_adapted(quartic.initial_state(0.9))),
+        "sleigh, q-dependent M": (
+            sleigh,
+            sleigh.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), sleigh.args),
+        ),
+        "disk, k = 2": (
+            disk,
+            disk.from_adapted(disk.initial_state(theta=0.2, rho1=1.0, rho2=0.5), disk.args),
+        ),
+    }
 
 
 def fitted_order(step_sizes, errors) -> float:
@@ -37,6 +60,12 @@ def reference_final_state(system, y0, t1, args=None):
     autodiff) by adaptive Dopri8 at rtol = atol = 1e-13 (`nhjax.integrate_adaptive`)."""
     solution = nh.integrate_adaptive(system, y0, t1, args, rtol=1e-13, atol=1e-13)
     return jax.tree.map(lambda y: y[-1], solution.ys)
+
+
+def first_step(example, method, y0, h):
+    """The state after one step of `method` with h from `y0` on `example.canonical`."""
+    solution = nh.integrate(example.canonical, method, y0, h, 1, args=example.args)
+    return solution.ys[0][1], solution.ys[1][1]
 
 
 def step_there_and_back(system, method, y0, h, args=None):

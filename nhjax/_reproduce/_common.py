@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 
 import nhjax as nh
 
+from .._methods import METHODS as REGISTRY
 from ._sizes import Sizes
 
 
@@ -33,19 +34,13 @@ class Method:
     description: str
 
 
+_COLOURS = {
+    "GONZALEZ-R": "C0", "GONZALEZ-F": "C1", "SI-DLA": "C2", "I-DLA": "C3", "SPARK": "C4",
+    "AVF": "C5", "GONZALEZ": "C6", "Tsit5": "C7",
+}
 METHODS = {
-    "GONZALEZ-R": Method(nh.GonzalezR(), False, "C0", "GONZALEZ-R, canonical coordinates"),
-    "GONZALEZ-F": Method(nh.GonzalezF(), False, "C1", "GONZALEZ-F, canonical coordinates"),
-    "SI-DLA": Method(nh.SIDLA(), False, "C2", "SI-DLA, canonical coordinates"),
-    "I-DLA": Method(nh.IDLA(), False, "C3", "I-DLA, canonical coordinates"),
-    "SPARK": Method(nh.SPARK(), False, "C4", "2-stage Lobatto IIIA-B-C-C*-D SPARK, canonical coordinates"),
-    "AVF": Method(
-        nh.DiscreteGradient(discrete_gradient=nh.avf), True, "C5", "DiscreteGradient(avf), adapted coordinates"
-    ),
-    "GONZALEZ": Method(
-        nh.DiscreteGradient(discrete_gradient=nh.gonzalez), True, "C6", "DiscreteGradient(gonzalez), adapted coordinates"
-    ),
-    "Tsit5": Method(diffrax.Tsit5(), False, "C7", "Tsit5 at fixed steps on the index-1 ODE (non-geometric)"),
+    method.name: Method(method.solver, method.adapted, _COLOURS[method.name], method.description)
+    for method in REGISTRY.values()
 }
 # Beyond the paper: the symmetric compositions (`nhjax.Composition`) of GONZALEZ-R and of
 # GONZALEZ on the reduced form, by name, with their orders.
@@ -61,7 +56,8 @@ METHODS.update({
     for name, colours in _COMPOSITION_COLOURS.items()
     for order, colour in zip((4, 6, 8), colours)
 })
-DISCRETE_GRADIENT_METHODS = ("AVF", "GONZALEZ", "GONZALEZ-R", "GONZALEZ-F")
+# The paper's discrete-gradient methods: those whose energy is exact to roundoff.
+DISCRETE_GRADIENT_METHODS = tuple(method.name for method in REGISTRY.values() if method.keeps_energy)
 # Every method whose energy is exact to roundoff.
 ENERGY_EXACT_METHODS = DISCRETE_GRADIENT_METHODS + tuple(COMPOSITIONS)
 EPS = float(np.finfo(np.float64).eps)

@@ -1,0 +1,74 @@
+"""The methods by name, one registry for the command line, the experiments and the
+tests: each with the paper's name, the form of the system it integrates, and what it
+keeps to roundoff."""
+
+import functools
+from collections.abc import Callable
+from typing import NamedTuple
+
+import diffrax
+
+from ._discrete_gradient import avf, gonzalez
+from ._solver import DiscreteGradient, GonzalezF, GonzalezR, IDLA, SIDLA, SPARK
+
+
+class Method(NamedTuple):
+    """A method as the paper names it (`name`). `adapted`: it integrates an example's
+    reduced equations in adapted coordinates (a `SkewGradientSystem`), not the
+    canonical `NonholonomicSystem`. `keeps_energy`, `keeps_constraint`: to roundoff, at
+    every step. `description`: one line on what it is and what it keeps. `solver` makes
+    the method with its defaults (when it is asked for, so that nothing is built before
+    the caller has chosen its dtype)."""
+
+    name: str
+    make: Callable[[], diffrax.AbstractSolver]
+    adapted: bool
+    keeps_energy: bool
+    keeps_constraint: bool
+    description: str
+
+    @property
+    def solver(self) -> diffrax.AbstractSolver:
+        return self.make()
+
+
+METHODS = {
+    "gonzalez-r": Method(
+        "GONZALEZ-R", GonzalezR, False, True, True,
+        "§3.3, the discrete gradient on the reduced system in canonical coordinates: "
+        "energy and constraint to roundoff",
+    ),
+    "gonzalez-f": Method(
+        "GONZALEZ-F", GonzalezF, False, True, False,
+        "§3.3, the direct method in canonical coordinates: energy to roundoff, the constraint not",
+    ),
+    "sidla": Method(
+        "SI-DLA", SIDLA, False, False, True,
+        "McLachlan & Perlmutter's semi-implicit DLA in canonical coordinates: constraint to "
+        "roundoff, energy O(h^2)",
+    ),
+    "idla": Method(
+        "I-DLA", IDLA, False, False, True,
+        "the implicit DLA with the midpoint discrete Lagrangian in canonical coordinates: "
+        "constraint to roundoff, energy O(h^2)",
+    ),
+    "spark": Method(
+        "SPARK", SPARK, False, False, True,
+        "2-stage Lobatto IIIA-B-C-C*-D SPARK in canonical coordinates: constraint to roundoff, "
+        "energy O(h^2)",
+    ),
+    "avf": Method(
+        "AVF", functools.partial(DiscreteGradient, discrete_gradient=avf), True, True, True,
+        "DiscreteGradient(avf) on the reduced equations in adapted coordinates: energy to "
+        "roundoff, the constraint by construction",
+    ),
+    "gonzalez": Method(
+        "GONZALEZ", functools.partial(DiscreteGradient, discrete_gradient=gonzalez), True, True, True,
+        "DiscreteGradient(gonzalez) on the reduced equations in adapted coordinates: energy to "
+        "roundoff, the constraint by construction",
+    ),
+    "tsit5": Method(
+        "Tsit5", diffrax.Tsit5, False, False, False,
+        "Tsit5 at fixed steps on the index-1 ODE: the non-geometric baseline",
+    ),
+}
