@@ -5,8 +5,9 @@ momentum is constant and it advances by the same amount each step. Its value swi
 the faults on mid-run: the Hamiltonian (value and gradient) or the constraint matrix
 turns NaN, or the constraint matrix vanishes (rank loss), past a threshold set in
 `args`; thresholds far away leave the system healthy. The other faults are a
-non-finite parameter, `dt = inf` and a step too large for the root find. One vmapped
-batch per method holds every fault beside a healthy trajectory, and each run must
+non-finite initial state, a non-finite parameter, `dt = inf` and a step too large for
+the root find. One vmapped batch per method holds every fault beside a healthy
+trajectory, and each run must
 report its exact code, hold non-finite saves from the failure on and finite ones
 before, equal its own single run, and have NaN derivatives with respect to the initial
 state, the parameters and the step size, forward and reverse, while the healthy one's
@@ -88,6 +89,7 @@ FAULTS = {
     "healthy": ({}, DT, nh.RESULTS.successful),
     "nan_hamiltonian_mid_run": (dict(nan_hamiltonian_at=MID_RUN), DT, nh.RESULTS.nonfinite_step),
     "nan_constraints_mid_run": (dict(nan_constraints_at=MID_RUN), DT, nh.RESULTS.nonfinite_step),
+    "nan_initial_state": ({}, DT, nh.RESULTS.nonfinite_initial_state),
     "nonfinite_parameter": (dict(stiffness=jnp.nan), DT, nh.RESULTS.nonfinite_args),
     "rank_lost_at_start": (dict(rank_lost_at=0.0), DT, nh.RESULTS.constraints_rank_deficient),
     "rank_lost_mid_run": (dict(rank_lost_at=MID_RUN), DT, nh.RESULTS.constraints_rank_deficient),
@@ -110,9 +112,11 @@ def _batch(system, names):
         args.append({key: jnp.asarray(value, dtype=jnp.float64) for key, value in {**_healthy_args(), **changes}.items()})
         steps.append(dt)
     args = jax.tree.map(lambda *leaves: jnp.stack(leaves), *args)
-    # Every run starts from the healthy system's state (on its constraint).
+    # Every run starts from the healthy system's state (on its constraint), but one.
     start = _initial_state(system, _healthy_args())
-    states = jax.tree.map(lambda leaf: jnp.stack([leaf] * len(names)), start)
+    nan_start = jax.tree.map(lambda leaf: leaf.at[0].set(jnp.nan), start)
+    starts = [nan_start if name == "nan_initial_state" else start for name in names]
+    states = jax.tree.map(lambda *leaves: jnp.stack(leaves), *starts)
     return states, args, jnp.asarray(steps, dtype=jnp.float64)
 
 

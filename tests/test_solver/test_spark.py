@@ -1,6 +1,7 @@
-"""SPARK (Lobatto IIIA-B-C-C*-D): order 2 against the index-1 reference, time symmetry,
-the constraint at step ends to roundoff, an energy error that is neither roundoff nor
-growing, per-trajectory failures, and the tableau-driven stepper with other tableaux."""
+"""SPARK (Lobatto IIIA-B-C-C*-D): the tableau-driven stepper with other tableaux, what
+a tableau that is not self-adjoint does, a traced step size, float32, and the Lobatto
+tableaux. (Order, the constraint to roundoff, the energy error and symmetry:
+test_methods.py; per-trajectory failures: test_faults.py.)"""
 
 import functools
 import math
@@ -15,13 +16,9 @@ import pytest
 import nhjax as nh
 from nhjax._solver._spark_tableau import lobatto_coefficients, lobatto_constraint_weights
 
-from ..helpers import fitted_order, reference_final_state, relative_energy_error, step_there_and_back
+from ..helpers import canonical_starts, fitted_order, reference_final_state, relative_energy_error, step_there_and_back
 
 
-GEARBOX = nh.examples.gearbox()
-QUARTIC = nh.examples.chaotic_quartic()
-SLEIGH = nh.examples.chaplygin_sleigh()
-DISK = nh.examples.rolling_disk()
 METHOD = nh.SPARK()
 RATTLE = nh.SPARK(nh.lobatto_spark_tableau(2, constraint_force="IIIB"))
 LOBATTO_3 = nh.SPARK(nh.lobatto_spark_tableau(3))
@@ -31,24 +28,12 @@ T1 = 5.0
 there_and_back = eqx.filter_jit(step_there_and_back)
 
 
-def _starts():
-    return {
-        "gearbox, k = 1": (GEARBOX, GEARBOX.random_initial_state(jax.random.key(0))),
-        "quartic, k = 1, n = 7": (QUARTIC, QUARTIC.from_adapted(QUARTIC.initial_state(0.9))),
-        "sleigh, q-dependent metric": (
-            SLEIGH,
-            SLEIGH.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), SLEIGH.args),
-        ),
-        "disk, k = 2": (
-            DISK,
-            DISK.from_adapted(DISK.initial_state(theta=0.2, rho1=1.0, rho2=0.5), DISK.args),
-        ),
-    }
+STARTS = canonical_starts()
 
 
 @functools.cache
 def _reference(name):
-    example, y0 = _starts()[name]
+    example, y0 = STARTS[name]
     return reference_final_state(example.canonical, y0, T1, example.args)
 
 
@@ -56,7 +41,7 @@ def _end_state_errors(name, method):
     """max |y(T1) - reference| for each step size, from one compiled program: every run
     has the same n_steps and save_every (dt is traced), and the save at step T1/h is
     read off."""
-    example, y0 = _starts()[name]
+    example, y0 = STARTS[name]
     steps = [round(T1 / h) for h in STEP_SIZES]
     every = math.gcd(*steps)
     reference = _reference(name)
@@ -71,17 +56,10 @@ def _end_state_errors(name, method):
     return errors
 
 
-@pytest.mark.parametrize("name", ["gearbox, k = 1", "quartic, k = 1, n = 7"])
-def test_second_order_against_the_index1_reference(name):
-    errors = _end_state_errors(name, METHOD)
-    assert METHOD.order(None) == 2
-    assert 1.8 <= fitted_order(STEP_SIZES, errors) <= 2.2, errors
-
-
 def test_other_tableaux_run_through_the_same_stepper_at_their_orders():
     """The nonholonomic RATTLE (constraint force on IIIB) is a different second-order
     method; the 3-stage Lobatto IIIA-B-C-C*-D tableau gives order 4 = 2s - 2."""
-    name = "gearbox, k = 1"
+    name = "gearbox, M = I"
     default = _end_state_errors(name, METHOD)
     rattle = _end_state_errors(name, RATTLE)
     three_stage = _end_state_errors(name, LOBATTO_3)
@@ -90,16 +68,6 @@ def test_other_tableaux_run_through_the_same_stepper_at_their_orders():
     assert LOBATTO_3.order(None) == 4
     assert 3.7 <= fitted_order(STEP_SIZES, three_stage) <= 4.3, three_stage
     assert three_stage[-1] < 1e-2 * default[-1]
-
-
-@pytest.mark.parametrize("name", list(_starts()))
-def test_time_symmetric(name):
-    """A step with h, then one with -h, returns to the start."""
-    example, y0 = _starts()[name]
-    back, results = there_and_back(example.canonical, METHOD, y0, 0.2, example.args)
-    assert all(result == diffrax.RESULTS.successful for result in results)
-    np.testing.assert_allclose(back[0], y0[0], atol=1e-14)
-    np.testing.assert_allclose(back[1], y0[1], atol=1e-14)
 
 
 def test_a_constraint_force_tableau_that_is_not_self_adjoint_breaks_the_symmetry():
@@ -115,71 +83,14 @@ def test_a_constraint_force_tableau_that_is_not_self_adjoint_breaks_the_symmetry
         constraint_weights=lobatto_constraint_weights(coefficients["b"], coefficients["c"]),
         order=1,
     )
-    example, y0 = _starts()["quartic, k = 1, n = 7"]
+    example, y0 = STARTS["quartic, n = 7"]
     back, results = there_and_back(example.canonical, nh.SPARK(tableau), y0, 0.2)
     assert all(result == diffrax.RESULTS.successful for result in results)
     assert float(jnp.max(jnp.abs(back[1] - y0[1]))) > 1e-6
 
 
-def test_constraint_to_roundoff_and_energy_error_bounded_over_ten_thousand_steps():
-    """g(q1, p1) = 0 is one of the step's equations: it holds at every step's end. The
-    energy is not conserved: its error is far above roundoff but stays small (the
-    method is symmetric, not energy-preserving)."""
-    _, y0 = _starts()["quartic, k = 1, n = 7"]
-    solution = nh.integrate(QUARTIC.canonical, METHOD, y0, 0.05, 10_000, save_every=10)
-    assert solution.result == nh.RESULTS.successful
-    assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-14
-    energy_error = relative_energy_error(solution)
-    assert 1e-5 <= energy_error <= 1e-2, energy_error
-
-
-@pytest.mark.parametrize("name", ["sleigh, q-dependent metric", "disk, k = 2"])
-def test_constraint_to_roundoff_with_a_q_dependent_metric_and_two_constraints(name):
-    example, y0 = _starts()[name]
-    solution = nh.integrate(example.canonical, METHOD, y0, 0.1, 2_000, args=example.args, save_every=10)
-    assert solution.result == nh.RESULTS.successful
-    assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-14
-
-
-def test_result_codes_per_trajectory_under_vmap():
-    """A batch of three: a good start; a start with NaN momenta; and one whose
-    Hamiltonian turns NaN at q3 > 1. q3 is a free rotation (A has no q3 column), so
-    q3 = 0.55 + t from p3 = 1, and the fifth step, to q3 = 1.05, fails, as a non-finite step. Each has its
-    own code; the good one is the same as in a batch of good starts only."""
-
-    def hamiltonian(q, p, args):
-        return 0.5 * (p @ p + q[0] ** 2 + q[1] ** 2) + 0.0 * jnp.sqrt(1.0 - q[2])
-
-    def constraints(q, args):
-        return jnp.array([[1.0, 0.5, 0.0]], dtype=q.dtype)
-
-    system = nh.NonholonomicSystem(hamiltonian, constraints)
-
-    def start(q3, broken):
-        q = jnp.array([0.1, 0.2, q3])
-        p = system.project_momentum(q, jnp.array([0.5, -0.5, 1.0]))
-        return q, jnp.where(broken, jnp.nan, p)
-
-    def run(y0):
-        return nh.integrate(system, METHOD, y0, 0.1, 20, throw=False)
-
-    starts = jax.vmap(start)(jnp.array([-3.0, -3.0, 0.55]), jnp.array([False, True, False]))
-    batch = jax.vmap(run)(starts)
-    assert bool((batch.result == nh.RESULTS.successful)[0])
-    assert bool((batch.result == nh.RESULTS.nonfinite_initial_state)[1])
-    assert bool((batch.result == nh.RESULTS.nonfinite_step)[2])
-    assert bool(jnp.all(jnp.isfinite(batch.ys[0][0])))
-    assert not bool(jnp.any(jnp.isfinite(batch.ys[0][1])))
-    assert bool(jnp.all(jnp.isfinite(batch.ys[0][2, :5])))
-    assert not bool(jnp.any(jnp.isfinite(batch.ys[0][2, 5:])))
-    good = jax.vmap(run)(jax.tree.map(lambda y: jnp.broadcast_to(y[0], y.shape), starts))
-    assert bool(jnp.all(good.result == nh.RESULTS.successful))
-    np.testing.assert_allclose(batch.ys[0][0], good.ys[0][1], atol=1e-14)
-    np.testing.assert_allclose(batch.ys[1][0], good.ys[1][1], atol=1e-14)
-
-
 def test_under_jit_with_a_traced_step_size():
-    example, y0 = _starts()["gearbox, k = 1"]
+    example, y0 = STARTS["gearbox, M = I"]
 
     @jax.jit
     def final_state(y0, dt):
@@ -199,7 +110,7 @@ def test_float32():
     """The float64 trajectory to tens of float32 ulps over 10 time units (roundoff
     then accumulates as a phase error), the same energy error as in float64 (it is the
     method's), and the constraint to a few float32 ulps over 100 time units."""
-    example, y0 = _starts()["gearbox, k = 1"]
+    example, y0 = STARTS["gearbox, M = I"]
     y0_32 = jax.tree.map(lambda y: y.astype(jnp.float32), y0)
     single = nh.integrate(example.canonical, METHOD, y0_32, 0.1, 1000, save_every=10)
     double = nh.integrate(example.canonical, METHOD, y0, 0.1, 1000, save_every=10)
