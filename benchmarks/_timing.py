@@ -1,6 +1,7 @@
-"""What the benchmark scripts share: wall-clock timing of JAX calls, the machine's
-description, and writing the results."""
+"""What the benchmark scripts share: their command-line options, wall-clock timing of
+JAX calls, the machine's description, and writing the results."""
 
+import argparse
 import json
 import pathlib
 import platform
@@ -9,6 +10,17 @@ import time
 from typing import Any
 
 import jax
+
+
+def options(description: str, result: str, **defaults) -> argparse.Namespace:
+    """The command line: `--name` for each of `defaults` (`--batch-steps` for
+    `batch_steps`), of its default's type, and `--out`, the JSON file, by default
+    `results/<result>.json` beside the scripts."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    for name, default in defaults.items():
+        parser.add_argument("--" + name.replace("_", "-"), type=type(default), default=default)
+    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / f"{result}.json"))
+    return parser.parse_args()
 
 
 def timed(function, *arguments) -> float:

@@ -5,8 +5,6 @@ Run: python benchmarks/discrete_gradient.py [--steps N] [--repeats R]
 Figures are medians over repeats; results go to benchmarks/results/discrete_gradient.json.
 """
 
-import argparse
-import pathlib
 
 import jax
 
@@ -15,17 +13,13 @@ jax.config.update("jax_enable_x64", True)
 
 
 import nhjax as nh  # noqa: E402
-from _timing import run_and_time, timed, write  # noqa: E402
+from _timing import options as command_line, run_and_time, timed, write  # noqa: E402
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--steps", type=int, default=20_000)
-    parser.add_argument("--batch-steps", type=int, default=2_000)
-    parser.add_argument("--batch", type=int, default=200)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "discrete_gradient.json"))
-    options = parser.parse_args()
+    options = command_line(
+        __doc__, "discrete_gradient", steps=20_000, batch_steps=2_000, batch=200, repeats=5
+    )
 
     quartic = nh.examples.chaotic_quartic(3)
     method = nh.DiscreteGradient()

@@ -20,8 +20,6 @@ Run: python benchmarks/gonzalez_r.py [--steps N] [--repeats R] [--rounds K]
 Results go to benchmarks/results/gonzalez_r.json.
 """
 
-import argparse
-import pathlib
 import statistics
 
 import jax
@@ -32,7 +30,7 @@ jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
 import peers  # noqa: E402
-from _timing import batch_rate, per_step, run_and_time, timed, write, yardstick  # noqa: E402
+from _timing import batch_rate, options as command_line, per_step, run_and_time, timed, write, yardstick  # noqa: E402
 
 
 def _median_ratio(pairs):
@@ -40,16 +38,17 @@ def _median_ratio(pairs):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--steps", type=int, default=20_000)
-    parser.add_argument("--long-steps", type=int, default=500_000)
-    parser.add_argument("--batch-steps", type=int, default=500)
-    parser.add_argument("--batch", type=int, default=200)
-    parser.add_argument("--numpy-steps", type=int, default=200)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gonzalez_r.json"))
-    options = parser.parse_args()
+    options = command_line(
+        __doc__,
+        "gonzalez_r",
+        steps=20_000,
+        long_steps=500_000,
+        batch_steps=500,
+        batch=200,
+        numpy_steps=200,
+        repeats=5,
+        rounds=3,
+    )
 
     gearbox = nh.examples.gearbox()
     y0 = gearbox.random_initial_state(jax.random.key(0))
