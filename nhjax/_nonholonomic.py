@@ -1,5 +1,4 @@
-r"""Nonholonomic systems in canonical coordinates, eq. (eq:HamEq), and their reduced
-form on $\mathcal{D}^*$ for a Householder frame, eqs. (PiMat), (skewMat), (eq:Htgrad).
+r"""Nonholonomic systems in canonical coordinates, eq. (eq:HamEq).
 
 Notation: state $(q, p) \in \mathbb{R}^n \times \mathbb{R}^n$,
 $H = \tfrac12 p^T K(q) p + V(q)$ with $K = M^{-1} = \partial^2 H/\partial p^2$,
@@ -8,9 +7,8 @@ $m = n - k$.
 """
 
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -18,19 +16,9 @@ from jaxtyping import Array, Float
 from ._linalg import solve_spd
 from ._householder import householder_frame, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
-from ._adapted import adapted_structure, adapted_structure_times
+from ._reduced import Derivative, momentum_in_frame, ReducedSystem
 from ._system import AbstractSystem, SkewGradientSystem, require_floating_vector, require_scalar
 
-
-Derivative = Literal["autodiff", "central_difference"]
-
-
-def check_derivative(derivative) -> None:
-    """Raise a `ValueError` unless `derivative` names a way to compute dX/dq."""
-    if derivative not in ("autodiff", "central_difference"):
-        raise ValueError(
-            f'derivative must be "autodiff" or "central_difference", got {derivative!r}.'
-        )
 
 # Multiples of eps in the initial-state checks: loose enough for states built in
 # floating point, tight enough that what passes is preserved to the same level.
@@ -249,122 +237,3 @@ class NonholonomicSystem(AbstractSystem):
         symmetric = jnp.max(jnp.abs(inverse - inverse.T)) <= _tolerance(q.dtype, jnp.max(jnp.abs(inverse)))
         positive = jnp.all(jnp.isfinite(jnp.linalg.cholesky(inverse)))
         return quadratic & no_linear & symmetric & positive
-
-
-def momentum_in_frame(frame, rho, weighted=None):
-    r"""Eq. (ptoptilde) in a given frame $X$, from `weighted` $= MX$: $p = MX(X^TMX)^{-1}
-    \rho$, and $y = (X^TMX)^{-1}\rho$, the velocity in the frame
-    ($\partial H/\partial p = Xy$). `weighted=None` stands for $M = I$, where the
-    orthonormal frame gives $y = \rho$ and $p = X\rho$ (to rounding; exactly what the
-    formula is then taken to mean)."""
-    if weighted is None:
-        return frame @ rho, rho
-    y = solve_spd(frame.T @ weighted, rho)
-    return weighted @ y, y
-
-
-def split_reduced(zeta, signs):
-    """$(q, \\rho)$ from $\\zeta$ of size $n + m = 2n - k$."""
-    n = (zeta.shape[0] + signs.shape[0]) // 2
-    return zeta[:n], zeta[n:]
-
-
-class ReducedSystem(eqx.Module):
-    r"""The reduced equations (dynamical) of a `NonholonomicSystem` for the Householder
-    frame $X(q; s)$, with everything evaluated from $H$ and $A$ alone (§3.3):
-
-    - $\mathcal{H}(q, \rho) = H(q, p)$, $p = p(q, \rho)$ by (ptoptilde);
-    - $\partial\mathcal{H}/\partial\rho = y = (X^TMX)^{-1}\rho$ and
-      $\partial\mathcal{H}/\partial q^i = \partial_{q^i}H(q, p) - p^T\,\partial_iX\,y$,
-      eq. (eq:Htgrad) (the $\partial g$ and $\partial V$ terms are $\partial_q H$ at
-      fixed $p$);
-    - $\Pi = \begin{pmatrix} 0 & X \\ -X^T & B\end{pmatrix}$ with
-      $B_{ab} = p^T(\partial X_a[X_b] - \partial X_b[X_a])$, eqs. (PiMat), (skewMat).
-
-    $\partial X/\partial q$ is `"autodiff"` (`jax.jacfwd` through the QR) or
-    `"central_difference"`: $(X(q + \epsilon e_i) - X(q - \epsilon e_i))/2\epsilon$, the
-    paper's finite-difference remark, with $\epsilon$ = `difference_step` (GONZALEZ-R
-    passes $|h|$, as the paper does, so the method stays second order).
-
-    `metric` says how $M(q)$ is found: `"position"` (default) from
-    $\partial^2H/\partial p^2$ at each $q$; `"identity"` for $M = I$; or a constant
-    $(n, n)$ array. A caller who knows the metric is constant (GONZALEZ-R decides it from
-    the program of $\partial H/\partial p$, `nhjax._dependence`) saves an $n \times n$
-    solve at every evaluation, and for $M = I$ two.
-    """
-
-    system: NonholonomicSystem
-    signs: Float[Array, " k"]
-    derivative: Derivative = eqx.field(default="autodiff", static=True)
-    difference_step: Any = None
-    metric: Any = "position"
-
-    def __check_init__(self):
-        check_derivative(self.derivative)
-        if isinstance(self.metric, str) and self.metric not in ("position", "identity"):
-            raise ValueError(f'metric must be "position", "identity" or an array, got {self.metric!r}.')
-        if self.derivative == "central_difference" and self.difference_step is None:
-            raise ValueError('derivative="central_difference" needs a difference_step.')
-
-    def momentum_in_frame(self, q, frame, rho, args):
-        """`nhjax._nonholonomic.momentum_in_frame` with this system's metric at `q`."""
-        if isinstance(self.metric, str):
-            if self.metric == "identity":
-                return momentum_in_frame(frame, rho)
-            weighted = solve_spd(self.system.inverse_metric(q, args), frame)
-        else:
-            weighted = self.metric @ frame
-        return momentum_in_frame(frame, rho, weighted)
-
-    def from_reduced(self, zeta, args) -> tuple[Array, Array]:
-        r"""$(q, p)$ from $\zeta = (q, \rho)$, eq. (ptoptilde)."""
-        q, rho = split_reduced(zeta, self.signs)
-        frame = self.system.frame(q, args, self.signs)
-        return q, self.momentum_in_frame(q, frame, rho, args)[0]
-
-    def hamiltonian(self, zeta, args) -> Float[Array, ""]:
-        q, p = self.from_reduced(zeta, args)
-        return self.system.hamiltonian(q, p, args)
-
-    def frame_and_derivative(self, q, args):
-        r"""$X(q)$ and $\partial X/\partial q$, shape (n, m, n)."""
-        frame = lambda x: self.system.frame(x, args, self.signs)  # noqa: E731
-        if self.derivative == "autodiff":
-            derivative, value = jax.jacfwd(lambda x: (lambda f: (f, f))(frame(x)), has_aux=True)(q)
-            return value, derivative
-        step = jnp.asarray(self.difference_step, q.dtype)
-        offsets = step * jnp.eye(q.shape[0], dtype=q.dtype)
-        differences = jax.vmap(lambda e: (frame(q + e) - frame(q - e)) / (2 * step))(offsets)
-        return frame(q), jnp.moveaxis(differences, 0, -1)
-
-    def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
-        r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
-        frame, bracket, gradient = self.frame_bracket_and_gradient(zeta, args)
-        return adapted_structure(frame, bracket), gradient
-
-    def frame_bracket_and_gradient(self, zeta, args):
-        r"""$X$, the block $B$ of $\Pi$ and $\nabla\mathcal{H}$ at $\zeta$
-        (`bracket_and_gradient_in_frame`), from one frame derivative."""
-        q, rho = split_reduced(zeta, self.signs)
-        frame, derivative = self.frame_and_derivative(q, args)
-        return frame, *self.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
-
-    def bracket_and_gradient_in_frame(self, q, rho, frame, derivative, args):
-        r"""The skew block $B$ of $\Pi$ (skewMat) and $\nabla\mathcal{H}$ (eq:Htgrad)
-        at $(q, \rho)$, from the frame and its derivative at $q$
-        (`frame_and_derivative`): how they depend on $\rho$ at fixed $q$, without the
-        QR; with `nhjax._adapted.adapted_structure_times` they give $\Pi v$ without
-        forming $\Pi$. The contraction $\sum_j p_j\,\partial_iX_{ja}$ is formed once for
-        both."""
-        p, y = self.momentum_in_frame(q, frame, rho, args)
-        contracted = jnp.einsum("j,jai->ai", p, derivative)
-        along_frame = contracted @ frame
-        grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - y @ contracted
-        return along_frame - along_frame.T, jnp.concatenate([grad_q, y])
-
-    def structure(self, zeta, args) -> Float[Array, "N N"]:
-        return self.structure_and_gradient(zeta, args)[0]
-
-    def vector_field(self, zeta, args) -> Float[Array, " N"]:
-        r"""$\dot\zeta = \Pi(\zeta)\nabla\mathcal{H}(\zeta)$."""
-        return adapted_structure_times(*self.frame_bracket_and_gradient(zeta, args))

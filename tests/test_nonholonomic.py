@@ -77,7 +77,7 @@ def test_reduced_gradient_and_structure(derivative):
     signs = system.frame_signs(y[0], None)
     step = 1e-4
     reduced = nh.NonholonomicSystem.reduced(system, signs, derivative, step)
-    from nhjax._nonholonomic import ReducedSystem
+    from nhjax._reduced import ReducedSystem
 
     formulas = ReducedSystem(system, signs, derivative, step)
     zeta = system.to_reduced(y, None, signs)

@@ -29,7 +29,8 @@ from jaxtyping import Array
 from .._adapted import adapted_structure_times
 from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import gonzalez_correction
-from .._nonholonomic import check_derivative, Derivative, NonholonomicSystem, ReducedSystem, split_reduced
+from .._nonholonomic import NonholonomicSystem
+from .._reduced import check_derivative, Derivative, ReducedSystem, split_reduced
 from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient
 
 
