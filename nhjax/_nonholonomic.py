@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._lagrangian import Lagrangian, LegendreHamiltonian
 from ._linalg import solve_spd
 from ._householder import householder_frame, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
@@ -53,10 +54,38 @@ class NonholonomicSystem(AbstractSystem):
     $p_0$ and two fixed directions); $A(q_0)$ of full rank (`rank_result`); and
     $|A(q_0) v_0| \le 1000\epsilon(1 + |A||v_0|)$ (max norms). `project_momentum` puts a
     momentum on the constraint.
+
+    A system given by its Lagrangian: `NonholonomicSystem.from_lagrangian`.
     """
 
     hamiltonian: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, ""]]
     constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]]
+
+    @classmethod
+    def from_lagrangian(
+        cls, lagrangian: Lagrangian, constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]]
+    ) -> "NonholonomicSystem":
+        r"""The system of `lagrangian(q, qdot, args) -> scalar`, of mechanical type
+        $L = \tfrac12\dot q^TM(q)\dot q - V(q)$ with $M$ symmetric positive definite,
+        and the constraints $A(q)\dot q = 0$: its Hamiltonian is the Legendre transform
+        $H = \tfrac12p^TM(q)^{-1}p + V(q)$ with $M = \partial^2L/\partial\dot q^2(q, 0)$
+        and $V = -L(q, 0)$, by autodiff (`nhjax._lagrangian.LegendreHamiltonian`), and
+        the state is $(q, p)$ with $p = M(q)\dot q$ (`momentum_from_velocity`).
+
+        A Lagrangian that is not of mechanical type (not quadratic in $\dot q$, a term
+        linear in $\dot q$, $M$ not positive definite) would give a Hamiltonian of
+        another system: `nhjax.integrate` checks the type at the initial state and
+        reports `RESULTS.lagrangian_not_mechanical`.
+
+        Every method integrates it as it integrates a system given by $H$; the
+        Hamiltonian costs a solve with $M(q)$ per evaluation, which a system written
+        with $H$ directly may avoid."""
+        return cls(LegendreHamiltonian(lagrangian), constraints)
+
+    def momentum_from_velocity(self, q, qdot, args) -> Float[Array, " n"]:
+        r"""$p = M(q)\dot q$ ($= \partial L/\partial\dot q$), the momentum of the
+        velocity `qdot`: a state from positions and velocities."""
+        return self.metric(q, args) @ qdot
 
     # Mechanics.
 
@@ -210,11 +239,20 @@ class NonholonomicSystem(AbstractSystem):
         )
         return first_failure(
             RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_initial_state),
+            # Before the Hamiltonian's checks: a Lagrangian of the wrong type is what the
+            # user wrote, and its transform may fail them only as a consequence.
+            self._lagrangian_result(q, v, args),
             RESULTS.where(evaluations_finite, RESULTS.successful, RESULTS.nonfinite_initial_evaluation),
             RESULTS.where(self._is_mechanical(q, p, args), RESULTS.successful, RESULTS.hamiltonian_not_mechanical),
             self.rank_result(q, args),
             RESULTS.where(satisfied, RESULTS.successful, RESULTS.constraint_violated_initially),
         )
+
+    def _lagrangian_result(self, q, v, args) -> RESULTS:
+        if not isinstance(self.hamiltonian, LegendreHamiltonian):
+            return RESULTS.successful
+        mechanical = self.hamiltonian.is_mechanical(q, v, args, _tolerance)
+        return RESULTS.where(mechanical, RESULTS.successful, RESULTS.lagrangian_not_mechanical)
 
     def _is_mechanical(self, q, p, args):
         """$H(q, u) = H(q, 0) + \\tfrac12 u^T K u$ along probes, $\\partial_p H(q, 0) = 0$

@@ -32,6 +32,12 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "the initial state: it is not quadratic in p, has a term linear in p, or its "
         "Hessian in p is not symmetric positive definite."
     )
+    lagrangian_not_mechanical = (
+        "The Lagrangian of NonholonomicSystem.from_lagrangian is not of mechanical type "
+        "1/2 qdot^T M(q) qdot - V(q) at the initial state: it is not quadratic in qdot, "
+        "has a term linear in qdot, or its Hessian in qdot is not symmetric positive "
+        "definite. Its Legendre transform would describe another system."
+    )
     constraints_rank_deficient = (
         "The constraint matrix A(q) lost full row rank: a Householder pivot vanished "
         "relative to |A| at the start or at a step's end, or the Householder frame of "

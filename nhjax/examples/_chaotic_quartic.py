@@ -81,6 +81,10 @@ def _canonical_hamiltonian(q, p, args=None):
     return 0.5 * p @ p + potential(q, args)
 
 
+def _lagrangian(q, qdot, args=None):
+    return 0.5 * qdot @ qdot - potential(q, args)
+
+
 def _constraints(q, args=None):
     del args
     n = (q.shape[0] - 1) // 2
@@ -111,6 +115,12 @@ class ChaoticQuartic(eqx.Module):
     def canonical(self) -> NonholonomicSystem:
         """(Lag)-(constraint) in canonical coordinates: $H = \\tfrac12|p|^2 + V(q)$."""
         return NonholonomicSystem(_canonical_hamiltonian, _constraints)
+
+    @property
+    def canonical_from_lagrangian(self) -> NonholonomicSystem:
+        r"""The same system from its Lagrangian (Lag), $L = \tfrac12|\dot q|^2 - V(q)$
+        (`NonholonomicSystem.from_lagrangian`)."""
+        return NonholonomicSystem.from_lagrangian(_lagrangian, _constraints)
 
     @staticmethod
     def constraints(q: Float[Array, " 2n+1"], args=None) -> Float[Array, "1 2n+1"]:

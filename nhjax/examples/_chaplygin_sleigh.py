@@ -80,6 +80,10 @@ def _canonical_hamiltonian(q, p, args):
     return 0.5 * p @ jnp.linalg.solve(_metric(q, args), p)
 
 
+def _lagrangian(q, qdot, args):
+    return 0.5 * qdot @ _metric(q, args) @ qdot
+
+
 def _constraints(q, args):
     del args
     theta = q[2]
@@ -113,6 +117,12 @@ class ChaplyginSleigh(eqx.Module):
         """The sleigh in canonical coordinates, $H = \\tfrac12 p^T M(\\theta)^{-1} p$ with
         the printed metric."""
         return NonholonomicSystem(_canonical_hamiltonian, _constraints)
+
+    @property
+    def canonical_from_lagrangian(self) -> NonholonomicSystem:
+        r"""The same system from its Lagrangian, the kinetic energy
+        $L = \tfrac12\dot q^TM(q)\dot q$ (`NonholonomicSystem.from_lagrangian`)."""
+        return NonholonomicSystem.from_lagrangian(_lagrangian, _constraints)
 
     @staticmethod
     def constraints(q: Float[Array, "3"], args) -> Float[Array, "1 3"]:

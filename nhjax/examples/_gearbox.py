@@ -32,6 +32,10 @@ def _hamiltonian(q, p, args):
     return 0.5 * p @ p + potential(q, args)
 
 
+def _lagrangian(q, qdot, args):
+    return 0.5 * qdot @ qdot - potential(q, args)
+
+
 def _constraints(q, args):
     del args
     one = jnp.ones_like(q[2])
@@ -54,6 +58,12 @@ class Gearbox(eqx.Module):
     @property
     def canonical(self) -> NonholonomicSystem:
         return NonholonomicSystem(_hamiltonian, _constraints)
+
+    @property
+    def canonical_from_lagrangian(self) -> NonholonomicSystem:
+        r"""The same system from its Lagrangian $L = \tfrac12|\dot q|^2 - V(q)$
+        (`NonholonomicSystem.from_lagrangian`)."""
+        return NonholonomicSystem.from_lagrangian(_lagrangian, _constraints)
 
     @staticmethod
     def constraints(q: Float[Array, "3"], args=None) -> Float[Array, "1 3"]:

@@ -57,6 +57,10 @@ def _canonical_hamiltonian(q, p, args):
     return 0.5 * p @ (p / jnp.diag(_metric(q, args)))
 
 
+def _lagrangian(q, qdot, args):
+    return 0.5 * qdot @ (jnp.diag(_metric(q, args)) * qdot)
+
+
 def _constraints(q, args):
     theta, r = q[2], _parameters(args)[1]
     zero, one = jnp.zeros_like(theta), jnp.ones_like(theta)
@@ -92,6 +96,13 @@ class RollingDisk(eqx.Module):
         """The disk in canonical coordinates, $H = \\tfrac12 p^T g^{-1} p$, two
         constraints."""
         return NonholonomicSystem(_canonical_hamiltonian, _constraints)
+
+    @property
+    def canonical_from_lagrangian(self) -> NonholonomicSystem:
+        r"""The same system from its Lagrangian, the kinetic energy
+        $L = \tfrac12(m(\dot x_1^2 + \dot x_2^2) + J_\theta\dot\theta^2 + J_\phi\dot\phi^2)$
+        (`NonholonomicSystem.from_lagrangian`)."""
+        return NonholonomicSystem.from_lagrangian(_lagrangian, _constraints)
 
     @staticmethod
     def constraints(q: Float[Array, "4"], args) -> Float[Array, "2 4"]:

@@ -1,0 +1,126 @@
+"""Systems from a Lagrangian (`NonholonomicSystem.from_lagrangian`): the Legendre
+transform gives each example's Hamiltonian, every method gives the same trajectories
+from either form, derivatives with respect to the Lagrangian's parameters agree with
+finite differences, and a Lagrangian that is not of mechanical type is refused."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax as nh
+
+from .helpers import CANONICAL_METHODS, canonical_starts, METHODS
+
+
+STARTS = canonical_starts()
+EXAMPLES = {name: example for name, (example, _) in STARTS.items()}
+
+
+@pytest.mark.parametrize("name", list(STARTS))
+def test_the_legendre_transform_gives_the_examples_hamiltonian(name):
+    example = EXAMPLES[name]
+    given, derived = example.canonical, example.canonical_from_lagrangian
+    n = STARTS[name][1][0].shape[0]
+    keys = jax.random.split(jax.random.key(3), 2)
+    qs, ps = (jax.random.normal(key, (20, n)) for key in keys)
+    h_given = jax.vmap(given.hamiltonian, (0, 0, None))(qs, ps, example.args)
+    h_derived = jax.vmap(derived.hamiltonian, (0, 0, None))(qs, ps, example.args)
+    np.testing.assert_allclose(h_derived, h_given, rtol=1e-13, atol=1e-13)
+    metric_given = jax.vmap(given.inverse_metric, (0, None))(qs, example.args)
+    metric_derived = jax.vmap(derived.inverse_metric, (0, None))(qs, example.args)
+    np.testing.assert_allclose(metric_derived, metric_given, rtol=1e-13, atol=1e-13)
+
+
+def test_the_momentum_of_a_velocity_is_the_lagrangians_derivative():
+    """p = M(q) qdot against dL/dqdot by autodiff of the Lagrangian itself, on the
+    sleigh (q-dependent M); for a velocity on the constraint, p is on it too."""
+    sleigh = EXAMPLES["sleigh, q-dependent M"]
+    system = sleigh.canonical_from_lagrangian
+    q = jnp.array([0.3, -1.0, 0.7])
+    qdot = system.frame(q, sleigh.args, system.frame_signs(q, sleigh.args)) @ jnp.array([0.4, -0.9])
+    p = system.momentum_from_velocity(q, qdot, sleigh.args)
+    lagrangian = system.hamiltonian.lagrangian
+    np.testing.assert_allclose(p, jax.grad(lagrangian, argnums=1)(q, qdot, sleigh.args), rtol=1e-14, atol=1e-14)
+    assert float(jnp.max(jnp.abs(system.constraint_residual((q, p), sleigh.args)))) <= 1e-14
+    np.testing.assert_allclose(system.velocity(q, p, sleigh.args), qdot, atol=1e-14)
+
+
+def _final_state(system, method, y0, args, n_steps=50):
+    solution = nh.integrate(system, method, y0, 0.1, n_steps, args=args, save_every=n_steps)
+    assert solution.result == nh.RESULTS.successful
+    return jax.tree.map(lambda y: y[-1], solution.ys)
+
+
+CASES = [(method, "sleigh, q-dependent M") for method in CANONICAL_METHODS] + [
+    ("gonzalez-r", name) for name in STARTS if name != "sleigh, q-dependent M"
+]
+
+
+@pytest.mark.parametrize("method, name", CASES)
+def test_both_forms_give_the_same_trajectory(method, name):
+    """Every method on the sleigh, whose metric depends on q, and GONZALEZ-R on the
+    others: 50 steps from either form agree to rounding (the forms compute M^-1 by
+    different routes)."""
+    example, y0 = STARTS[name]
+    given = _final_state(example.canonical, METHODS[method], y0, example.args)
+    derived = _final_state(example.canonical_from_lagrangian, METHODS[method], y0, example.args)
+    for a, b in zip(given, derived):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-11)
+
+
+def test_derivatives_with_respect_to_the_lagrangians_parameters():
+    """d x_1(t = 5) / d J on the Chaplygin sleigh with SI-DLA, from a start given by
+    positions and velocities (its momentum M qdot depends on J too): from the
+    Lagrangian form, equal to the Hamiltonian form's and to a central difference."""
+    sleigh, (q0, _) = STARTS["sleigh, q-dependent M"]
+    qdot0 = sleigh.frame(q0, sleigh.args) @ jnp.array([0.3, -0.6])  # on the constraint
+    method = nh.SIDLA()
+
+    def final_x(system, inertia):
+        args = dict(sleigh.args, J=inertia)
+        y0 = (q0, system.momentum_from_velocity(q0, qdot0, args))
+        return nh.integrate(system, method, y0, 0.1, 50, args=args, save_every=50).ys[0][-1, 0]
+
+    inertia = jnp.asarray(sleigh.args["J"], dtype=jnp.float64)
+    derived = jax.grad(lambda j: final_x(sleigh.canonical_from_lagrangian, j))(inertia)
+    given = jax.grad(lambda j: final_x(sleigh.canonical, j))(inertia)
+    step = 1e-5
+    difference = (final_x(sleigh.canonical_from_lagrangian, inertia + step)
+                  - final_x(sleigh.canonical_from_lagrangian, inertia - step)) / (2 * step)
+    assert abs(float(derived)) > 1e-3  # the parameter matters
+    np.testing.assert_allclose(derived, given, rtol=1e-10)
+    np.testing.assert_allclose(derived, difference, rtol=1e-7)
+
+
+def _constraints(q, args):
+    one = jnp.ones_like(q[0])
+    return jnp.stack([-q[1], 0.0 * one, one])[None, :]
+
+
+NOT_MECHANICAL = {
+    "quartic in qdot": lambda q, qdot, args: 0.5 * qdot @ qdot + 0.1 * (qdot @ qdot) ** 2 - 0.5 * q @ q,
+    "linear in qdot": lambda q, qdot, args: 0.5 * qdot @ qdot + q[0] * qdot[1] - 0.5 * q @ q,
+    "M not positive definite": lambda q, qdot, args: 0.5 * (qdot[0] ** 2 - qdot[1] ** 2 + qdot[2] ** 2) - 0.5 * q @ q,
+}
+
+
+@pytest.mark.parametrize("name", list(NOT_MECHANICAL))
+def test_a_lagrangian_not_of_mechanical_type_is_refused(name):
+    system = nh.NonholonomicSystem.from_lagrangian(NOT_MECHANICAL[name], _constraints)
+    # On the constraint v_z = y v_x for M = I and for M = diag(1, -1, 1).
+    y0 = (jnp.array([0.3, -0.2, 0.1]), jnp.array([0.5, 0.4, -0.1]))
+    with pytest.raises(RuntimeError, match="Lagrangian .* is not of mechanical type"):
+        nh.integrate(system, nh.SIDLA(), y0, 0.1, 5)
+    solution = nh.integrate(system, nh.SIDLA(), y0, 0.1, 5, throw=False)
+    assert solution.result == nh.RESULTS.lagrangian_not_mechanical
+
+
+def test_a_mechanical_lagrangian_of_the_same_shape_is_accepted():
+    """The control for the refusals: the same particle with a mechanical Lagrangian."""
+    system = nh.NonholonomicSystem.from_lagrangian(lambda q, qdot, args: 0.5 * qdot @ qdot - 0.5 * q @ q, _constraints)
+    q = jnp.array([0.3, -0.2, 0.1])
+    y0 = (q, system.project_momentum(q, jnp.array([0.5, 0.4, -0.1])))
+    solution = nh.integrate(system, nh.GonzalezR(), y0, 0.1, 100)
+    assert solution.result == nh.RESULTS.successful
+    assert float(jnp.max(jnp.abs(solution.energy / solution.energy[0] - 1))) <= 1e-13
