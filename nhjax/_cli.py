@@ -68,17 +68,59 @@ SYSTEMS = {
 }
 # The methods for the canonical systems the command simulates.
 METHODS = {name: method for name, method in _REGISTRY.items() if not method.adapted}
+_USER_SYSTEM = {
+    "MODULE:FACTORY": "your own system (also --system MODULE:FACTORY): FACTORY() in MODULE returns "
+    "(system, (q0, p0), args), the system a nhjax.NonholonomicSystem",
+}
 FIGURES = ("fig1", "fig2", "fig3", "fig4")
 _DEFAULT_ANGLE = 0.7
 
 
+class _FactoryError(Exception):
+    """A user's `MODULE:FACTORY` that cannot be imported or returns the wrong thing."""
+
+
+def _user_problem(spec: str):
+    """(system, (q0, p0), args, a description) from `factory()` of `MODULE:FACTORY`.
+    The current folder is searched first for MODULE, as `python -m` does, so that a
+    file `./my_system.py` is `my_system:factory`."""
+    import importlib
+
+    import nhjax as nh
+
+    module_name, _, factory_name = spec.partition(":")
+    if os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as error:
+        raise _FactoryError(f"cannot import module {module_name!r} of {spec}: {type(error).__name__}: {error}") from None
+    factory = getattr(module, factory_name, None)
+    if not callable(factory):
+        raise _FactoryError(f"module {module_name!r} has no function {factory_name!r}")
+    produced = factory()
+    expected = "(system, (q0, p0), args), the system a NonholonomicSystem"
+    if not (isinstance(produced, tuple) and len(produced) == 3):
+        raise _FactoryError(f"{spec}() must return {expected}; it returned {type(produced).__name__}")
+    system, y0, args = produced
+    if not isinstance(system, nh.NonholonomicSystem):
+        raise _FactoryError(f"{spec}() must return {expected}; its system is a {type(system).__name__}")
+    try:
+        system.check_shapes(y0, args)
+    except (TypeError, ValueError) as error:
+        raise _FactoryError(f"{spec}() returned an initial state that does not fit its system: {error}") from None
+    return system, y0, args, f"{spec}()"
+
+
 def _problem(arguments):
     """(system, initial state (q, p), args, a description) of the chosen example, in
-    canonical coordinates."""
+    canonical coordinates, or of the user's factory."""
     import jax
 
     import nhjax as nh
 
+    if _is_factory(arguments.system):
+        return _user_problem(arguments.system)
     if arguments.system == "gearbox":
         gearbox = nh.examples.gearbox()
         seed = 0 if arguments.seed is None else arguments.seed
@@ -129,7 +171,11 @@ def _simulate(arguments, n_steps: int) -> int:
     from ._chunk_files import write_atomically
     from ._runner import run_chunked
 
-    system, y0, args, description = _problem(arguments)
+    try:
+        system, y0, args, description = _problem(arguments)
+    except _FactoryError as error:
+        print(f"nhjax simulate: error: {error}", file=sys.stderr)
+        return 2
     method = _composed(METHODS[arguments.method].solver, arguments.order)
     out = _output_path(arguments)
     chunks = out.with_name(out.name + ".chunks")
@@ -169,7 +215,7 @@ def _simulate(arguments, n_steps: int) -> int:
 
 def _output_path(arguments) -> pathlib.Path:
     order = "" if arguments.order == 2 else f"-order{arguments.order}"
-    return pathlib.Path(arguments.out or f"{arguments.system}-{arguments.method}{order}.npz")
+    return pathlib.Path(arguments.out or f"{arguments.system.replace(':', '.')}-{arguments.method}{order}.npz")
 
 
 def _output_problem(out: pathlib.Path) -> str | None:
@@ -231,19 +277,27 @@ def main(argv=None) -> int:
 
     simulate = commands.add_parser(
         "simulate",
-        help="integrate one of the paper's systems with one method and save the trajectory",
+        help="integrate one of the paper's systems, or your own, with one method and save the trajectory",
         description=textwrap.fill(
-            "Integrate one of the paper's systems (canonical coordinates, float64) with one "
+            "Integrate one of the paper's systems or your own (canonical coordinates, float64) with one "
             "method, write the saved trajectory to an .npz file (arrays ts, q, p, energy, "
             "constraint) and print the energy and constraint errors. The run goes in chunks "
             "kept in FILE.chunks/ until FILE is written, so an interrupted run continues "
             "where it stopped when rerun with the same arguments.", 80
         ),
-        epilog=f"systems:\n{_listing(SYSTEMS)}\n\nmethods:\n"
+        epilog=f"systems:\n{_listing(SYSTEMS)}\n{_listing(_USER_SYSTEM)}\n\nmethods:\n"
         + _listing({name: f"{method.name} ({method.description})" for name, method in METHODS.items()}),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    simulate.add_argument("system", choices=SYSTEMS, metavar="SYSTEM", help=f"one of {', '.join(SYSTEMS)} (see below)")
+    simulate.add_argument(
+        "system", nargs="?", metavar="SYSTEM",
+        help=f"one of {', '.join(SYSTEMS)}, or MODULE:FACTORY (see below)",
+    )
+    simulate.add_argument(
+        "--system", dest="factory", metavar="MODULE:FACTORY",
+        help="your own system: FACTORY() in MODULE returns (system, (q0, p0), args), the system a "
+        "nhjax.NonholonomicSystem; MODULE is searched for in the current folder first",
+    )
     simulate.add_argument("--method", required=True, choices=METHODS, metavar="METHOD", help=f"one of {', '.join(METHODS)} (see below)")
     simulate.add_argument(
         "--order", type=int, choices=ORDERS, default=2, metavar="P",
@@ -320,11 +374,33 @@ def _run_command(arguments, parser, simulate) -> int:
         return _demo(arguments)
     if arguments.command == "reproduce":
         return _reproduce(arguments)
+    arguments.system = _checked_system(simulate, arguments)
     n_steps = _checked_steps(simulate, arguments)
     problem = _output_problem(_output_path(arguments))
     if problem:
         simulate.error(f"argument --out: {problem}")
     return _simulate(arguments, n_steps)
+
+
+def _is_factory(system: str) -> bool:
+    module, colon, factory = system.partition(":")
+    return bool(colon and module and factory)
+
+
+def _checked_system(parser, arguments) -> str:
+    """The system: a built-in example's name or MODULE:FACTORY, given once, either as
+    SYSTEM or as --system."""
+    if (arguments.system is None) == (arguments.factory is None):
+        parser.error("give the system once: SYSTEM, or --system MODULE:FACTORY")
+    system = arguments.system or arguments.factory
+    if system in SYSTEMS or _is_factory(system):
+        return system
+    if arguments.factory is not None:
+        parser.error(f"argument --system: expected MODULE:FACTORY, got {system!r}")
+    parser.error(
+        f"argument SYSTEM: invalid choice: {system!r} (choose from {', '.join(map(repr, SYSTEMS))}, "
+        "or give MODULE:FACTORY)"
+    )
 
 
 def _checked_steps(parser, arguments) -> int:
