@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
@@ -32,6 +33,7 @@ def integrate_ensemble(
     t0: float | Array = 0.0,
     check_constraint: bool = True,
     devices: Sequence[jax.Device] | None = None,
+    gather: bool = True,
 ) -> Solution:
     """`nhjax.integrate` for a batch of initial states, split over `devices`.
 
@@ -54,6 +56,17 @@ def integrate_ensemble(
     With one device this is `jax.vmap` of `nhjax.integrate`; with several, the same
     computation divided among them. Results agree to rounding, not bit for bit: the
     size of each device's batch changes how XLA vectorises it.
+
+    **Several processes** (a `jax.distributed` job: several hosts, or several processes
+    on one machine, CPU ones with `jax_cpu_collectives_implementation="gloo"`): every
+    process calls this with the same global batch `y0s` and the same other arguments;
+    the devices of all processes share the batch. With `gather=True` (default) every
+    process gets the whole `Solution` back as arrays it can read (gathered with
+    `jax.experimental.multihost_utils.process_allgather`); with `gather=False` it gets
+    the global arrays sharded over every process's devices, as the program left them
+    (then `B` must be a multiple of `D`, and each process reads only its own shards).
+    Not under a JAX transformation: the batch is put on the devices of every process
+    from the host.
 
     The other arguments are those of `nhjax.integrate` (no progress meter: devices run
     their shares independently).
@@ -83,7 +96,17 @@ def integrate_ensemble(
         lambda leaf: jnp.concatenate([leaf, jnp.repeat(leaf[:1], padded_size - size, axis=0)]),
         y0s,
     )
-    padded = jax.device_put(padded, NamedSharding(mesh, PartitionSpec(_AXIS)))
+    sharding = NamedSharding(mesh, PartitionSpec(_AXIS))
+    several_processes = any(device.process_index != jax.process_index() for device in devices)
+    if several_processes:
+        if padded_size != size and not gather:
+            raise ValueError(
+                f"integrate_ensemble(..., gather=False) across processes needs a batch size "
+                f"that is a multiple of the {len(devices)} devices, got {size}."
+            )
+        padded = jax.tree.map(lambda leaf: _global_array(np.asarray(leaf), sharding), padded)
+    else:
+        padded = jax.device_put(padded, sharding)
     solution = _sharded_run(
         system,
         method,
@@ -96,11 +119,22 @@ def integrate_ensemble(
         n_steps=int(n_steps),
         save_every=int(save_every),
     )
+    if several_processes and gather:
+        solution = jax.tree.map(jnp.asarray, multihost_utils.process_allgather(solution, tiled=True))
     if padded_size != size:
         solution = jax.tree.map(lambda leaf: leaf[:size], solution)
     if throw:
-        _raise_failures(solution.result)
+        codes = solution.result
+        if several_processes and not gather:
+            codes = jax.tree.map(jnp.asarray, multihost_utils.process_allgather(codes, tiled=True))
+        _raise_failures(codes)
     return solution
+
+
+def _global_array(host: np.ndarray, sharding: NamedSharding) -> jax.Array:
+    """The array `host`, which every process holds whole, split over the devices of
+    every process: each process puts its own devices' shards."""
+    return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
 
 
 def _raise_failures(result: RESULTS) -> None:
