@@ -1,0 +1,21 @@
+"""The documentation site builds with `mkdocs build --strict`: a broken cross-reference,
+a missing page or an object that no longer exists fails it."""
+
+import pathlib
+import subprocess
+import sys
+
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def test_the_site_builds_strictly(tmp_path):
+    build = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )
+    assert build.returncode == 0, build.stderr[-5000:]
+    methods = (tmp_path / "site" / "methods" / "index.html").read_text()
+    for name in ("GonzalezR", "GonzalezF", "SIDLA", "IDLA", "SPARK", "Composition", "DiscreteGradient"):
+        assert f'id="nhjax.{name}"' in methods, name
+    assert (tmp_path / "site" / "notebooks" / "sleigh_parameter_identification" / "index.html").exists()
