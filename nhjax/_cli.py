@@ -250,7 +250,10 @@ def _reproduce(arguments) -> int:
     print(f"Report, figures and results.json in {arguments.out}")
     for name, result in results.items():
         if isinstance(result, dict) and "verdict" in result:
-            agreement = "agrees with the paper" if result.get("agrees") else "DOES NOT AGREE with the paper"
+            status = result.get("status", "agrees" if result.get("agrees") else "disagrees")
+            agreement = {"agrees": "agrees with the paper", "partly": "agrees with the paper in part"}.get(
+                status, "DOES NOT AGREE with the paper"
+            )
             print(f"  {name}: {agreement}: {result['verdict']}")
     return 0
 

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._linalg import solve_spd
+from ._linalg import is_quadratic_form, solve_spd
 
 
 Lagrangian = Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, ""]]
@@ -42,26 +42,9 @@ class LegendreHamiltonian(eqx.Module):
     def is_mechanical(
         self, q: Float[Array, " n"], velocity: Float[Array, " n"], args: Any, tolerance: Callable
     ) -> Bool[Array, ""]:
-        r"""Whether $L$ is of mechanical type at `q`, along `velocity` and two fixed
-        directions: $L(q, u) = L(q, 0) + \tfrac12u^TMu$, $\partial L/\partial\dot q(q, 0)
-        = 0$, $M$ symmetric positive definite; `tolerance(dtype, scale)` is the
-        allowed rounding."""
-        n = q.shape[0]
-        mass = self.mass_matrix(q, args)
-        base = self.lagrangian(q, jnp.zeros_like(q), args)
-        probes = jnp.stack([velocity, jnp.ones_like(q), jnp.cos(jnp.arange(n, dtype=q.dtype))])
-
-        def quadratic_along(u):
-            kinetic = 0.5 * u @ mass @ u
-            value = self.lagrangian(q, u, args)
-            return jnp.abs(value - base - kinetic) <= tolerance(
-                q.dtype, jnp.abs(value) + jnp.abs(base) + jnp.abs(kinetic)
-            )
-
-        quadratic = jnp.all(jax.vmap(quadratic_along)(probes))
-        linear_term = jax.grad(self.lagrangian, argnums=1)(q, jnp.zeros_like(q), args)
-        scale = jnp.max(jnp.abs(mass))
-        no_linear = jnp.max(jnp.abs(linear_term)) <= tolerance(q.dtype, scale)
-        symmetric = jnp.max(jnp.abs(mass - mass.T)) <= tolerance(q.dtype, scale)
-        positive = jnp.all(jnp.isfinite(jnp.linalg.cholesky(mass)))
-        return quadratic & no_linear & symmetric & positive
+        r"""Whether $L$ is of mechanical type at `q`, probed along `velocity`:
+        $L(q, u) = L(q, 0) + \tfrac12u^TMu$, $\partial L/\partial\dot q(q, 0) = 0$, $M$
+        symmetric positive definite (`nhjax._linalg.is_quadratic_form`)."""
+        return is_quadratic_form(
+            lambda u: self.lagrangian(q, u, args), self.mass_matrix(q, args), velocity, tolerance
+        )

@@ -9,9 +9,13 @@ differentiable like any other `jax.numpy` code. Above `UNROLL_LIMIT` the LAPACK 
 are used.
 """
 
+from collections.abc import Callable
+from typing import Any
+
+import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 
 UNROLL_LIMIT = 16
@@ -54,3 +58,33 @@ def safe_norm(v: Float[Array, " n"]) -> Float[Array, ""]:
     """|v|, with derivative 0 (not NaN) at v = 0."""
     square = v @ v
     return jnp.where(square == 0, 0.0, jnp.sqrt(jnp.where(square == 0, 1.0, square)))
+
+
+def is_quadratic_form(
+    function: Callable[[Float[Array, " n"]], Float[Array, ""]],
+    matrix: Float[Array, "n n"],
+    direction: Float[Array, " n"],
+    tolerance: Callable[[Any, Any], Any],
+) -> Bool[Array, ""]:
+    r"""Whether $f(u) = f(0) + \tfrac12u^TSu$ for `function` $f$ and `matrix` $S$, along
+    `direction` and two fixed directions, with no term linear in $u$
+    ($\nabla f(0) = 0$) and $S$ symmetric positive definite; `tolerance(dtype, scale)`
+    is the rounding allowed. The test of mechanical type for a Hamiltonian in $p$ and
+    for a Lagrangian in $\dot q$."""
+    n = direction.shape[0]
+    dtype = direction.dtype
+    zero = jnp.zeros_like(direction)
+    base = function(zero)
+    probes = jnp.stack([direction, jnp.ones_like(direction), jnp.cos(jnp.arange(n, dtype=dtype))])
+
+    def quadratic_along(u):
+        form = 0.5 * u @ matrix @ u
+        value = function(u)
+        return jnp.abs(value - base - form) <= tolerance(dtype, jnp.abs(value) + jnp.abs(base) + jnp.abs(form))
+
+    quadratic = jnp.all(jax.vmap(quadratic_along)(probes))
+    scale = jnp.max(jnp.abs(matrix))
+    no_linear = jnp.max(jnp.abs(jax.grad(function)(zero))) <= tolerance(dtype, scale)
+    symmetric = jnp.max(jnp.abs(matrix - matrix.T)) <= tolerance(dtype, scale)
+    positive = jnp.all(jnp.isfinite(jnp.linalg.cholesky(matrix)))
+    return quadratic & no_linear & symmetric & positive

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._lagrangian import Lagrangian, LegendreHamiltonian
-from ._linalg import solve_spd
+from ._linalg import is_quadratic_form, solve_spd
 from ._householder import householder_frame, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
 from ._reduced import Derivative, momentum_in_frame, ReducedSystem
@@ -257,21 +257,6 @@ class NonholonomicSystem(AbstractSystem):
     def _is_mechanical(self, q, p, args):
         """$H(q, u) = H(q, 0) + \\tfrac12 u^T K u$ along probes, $\\partial_p H(q, 0) = 0$
         and $K$ positive definite."""
-        n = q.shape[0]
-        inverse = self.inverse_metric(q, args)
-        base = self.hamiltonian(q, jnp.zeros_like(p), args)
-        probes = jnp.stack([p, jnp.ones_like(p), jnp.cos(jnp.arange(n, dtype=p.dtype))])
-
-        def defect(u):
-            quadratic = 0.5 * u @ inverse @ u
-            value = self.hamiltonian(q, u, args)
-            return jnp.abs(value - base - quadratic) <= _tolerance(
-                q.dtype, jnp.abs(value) + jnp.abs(base) + jnp.abs(quadratic)
-            )
-
-        quadratic = jnp.all(jax.vmap(defect)(probes))
-        linear_term = self.velocity(q, jnp.zeros_like(p), args)
-        no_linear = jnp.max(jnp.abs(linear_term)) <= _tolerance(q.dtype, jnp.max(jnp.abs(inverse)))
-        symmetric = jnp.max(jnp.abs(inverse - inverse.T)) <= _tolerance(q.dtype, jnp.max(jnp.abs(inverse)))
-        positive = jnp.all(jnp.isfinite(jnp.linalg.cholesky(inverse)))
-        return quadratic & no_linear & symmetric & positive
+        return is_quadratic_form(
+            lambda u: self.hamiltonian(q, u, args), self.inverse_metric(q, args), p, _tolerance
+        )

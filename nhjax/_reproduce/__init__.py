@@ -3,8 +3,9 @@ beyond it (Figure 4), computed, plotted, checked against the paper's claims and 
 up: `reproduce`, behind `nhjax reproduce`.
 
 Each experiment writes `figN.png` into the output folder; `results.json` holds the
-numbers behind them, each experiment's `agrees` and one-line `verdict`, and its wall
-time; `report.md` shows it all. Long runs (Figure 1's ensemble, Figure 3's 500 000
+numbers behind them, each experiment's checks (what was measured and the criterion it
+was held to), its `status` ("agrees", "partly" or "disagrees", from the checks alone,
+see `_common.verdict`), `agrees` and one-line `verdict`, and its wall time; `report.md` shows it all. Long runs (Figure 1's ensemble, Figure 3's 500 000
 steps) go through `run_chunked` with their chunks under `out/chunks/`, so an interrupted
 reproduction continues where it stopped when run again into the same folder.
 """

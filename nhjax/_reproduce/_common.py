@@ -245,14 +245,21 @@ def save_figure(figure: Figure, path: pathlib.Path, legend_size: int = 7) -> str
     return path.name
 
 
-def check(passed: bool, text: str) -> dict:
-    """One claim checked: whether it holds, and what was compared."""
-    return dict(passed=bool(passed), text=text)
+def check(passed: bool, text: str, criterion: str, *, secondary: bool = False) -> dict:
+    """One claim checked: whether it holds, what was measured (`text`), the quantitative
+    `criterion` it was held to, and whether the claim is `secondary`: one the paper
+    makes in passing (a failure makes the verdict "partly", not "disagrees")."""
+    return dict(passed=bool(passed), text=text, criterion=criterion, secondary=secondary)
 
 
-def verdict(checks: list[dict]) -> tuple[bool, str]:
-    """`agrees` (every check holds) and a one-line verdict listing the checks, the
-    failed ones marked."""
-    agrees = all(item["passed"] for item in checks)
-    parts = [item["text"] if item["passed"] else f"NOT {item['text']}" for item in checks]
-    return agrees, ("Agrees: " if agrees else "Disagrees: ") + "; ".join(parts) + "."
+def verdict(checks: list[dict]) -> dict:
+    """The verdict of an experiment from its checks alone: `status` "agrees" when every
+    check holds, "partly" when only secondary ones fail, "disagrees" when any other
+    fails; `agrees` (status "agrees"); and `verdict`, one line listing every check with
+    its criterion, the failed ones marked NOT."""
+    failed = [item for item in checks if not item["passed"]]
+    status = "agrees" if not failed else "partly" if all(item["secondary"] for item in failed) else "disagrees"
+    parts = [
+        f"{'' if item['passed'] else 'NOT '}{item['text']} [criterion: {item['criterion']}]" for item in checks
+    ]
+    return dict(status=status, agrees=status == "agrees", verdict=f"{status.capitalize()}: " + "; ".join(parts) + ".")

@@ -101,12 +101,14 @@ def run(context: Context) -> dict:
                 result["max_abs_final_rho1"] < 1e-8 and result["max_final_rho2_error"] < bound,
                 f"{name} settles at rho = (0, {settled_rho2:.10f}) from both sides: |rho1| "
                 f"{result['max_abs_final_rho1']:.0e}, rho2 off by {result['max_final_rho2_error']:.0e}",
+                f"|rho1| < 1e-8 and |rho2 - {settled_rho2:.10f}| <= 100 eps sqrt(N) = {bound:.0e}",
             ),
             check(energy_error <= bound and constraint <= bound,
-                  f"{name} energy error {energy_error:.0e}, constraint {constraint:.0e} (roundoff)"),
+                  f"{name} energy error {energy_error:.0e}, constraint {constraint:.0e}",
+                  f"both <= {bound:.0e} (roundoff)"),
         ]
-    checks.append(check(STEP < stability_limit, f"h = {STEP} < |2/(C rho2)| = {stability_limit:.1f}"))
-    agrees, line = verdict(checks)
+    checks.append(check(STEP < stability_limit, f"h = {STEP}, |2/(C rho2)| = {stability_limit:.1f}",
+                        "h < |2/(C rho2)| (Proposition 4.1)"))
     return dict(
         settings=dict(J=8.0, a=1.0, m=1.0, h=STEP, n_steps=sizes.sleigh_steps, x1=-5.0, x2=0.0, theta=0.1,
                       rho1=list(RHO1), rho2=RHO2, stability_limit_h=stability_limit, roundoff_bound=bound),
@@ -114,6 +116,5 @@ def run(context: Context) -> dict:
         methods=per_method,
         images=[image],
         checks=checks,
-        agrees=agrees,
-        verdict=line,
+        **verdict(checks),
     )
