@@ -19,3 +19,5 @@ def test_the_site_builds_strictly(tmp_path):
     for name in ("GonzalezR", "GonzalezF", "SIDLA", "IDLA", "SPARK", "Composition", "DiscreteGradient"):
         assert f'id="nhjax.{name}"' in methods, name
     assert (tmp_path / "site" / "notebooks" / "sleigh_parameter_identification" / "index.html").exists()
+    reproduction = (tmp_path / "site" / "reproduction" / "report" / "index.html").read_text()
+    assert "fig1.png" in reproduction and "Mode: full" in reproduction
