@@ -1,6 +1,8 @@
 """What a system's functions compute from what, read from their JAX programs at trace
 time: which methods may take the shortcuts a constant metric allows."""
 
+import collections
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -63,6 +65,39 @@ def _dependent_outputs(jaxpr: Jaxpr, dependent_inputs: list[bool]) -> list[bool]
     return [flagged(atom) for atom in jaxpr.outvars]
 
 
+# Both answers are computed at trace time, and a run traces its step several times (and a
+# program that integrates repeatedly, more): they are remembered per system, shapes and
+# static arguments, as `jax.jit` remembers a trace. A system or static argument that
+# cannot be hashed is analysed afresh every time.
+_MEMO_SIZE = 256
+_memo: collections.OrderedDict = collections.OrderedDict()
+
+
+def _memoised(kind, compute, system, q, p, args):
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    static_leaves, static_structure = jax.tree.flatten(static)
+    inputs = jax.tree.leaves((q, p, dynamic))
+    key = (
+        kind,
+        system,
+        jax.tree.structure((q, p, dynamic)),
+        tuple((jnp.shape(x), jnp.result_type(x)) for x in inputs),
+        static_structure,
+        tuple(static_leaves),
+    )
+    try:
+        hash(key)
+    except TypeError:
+        return compute(system, q, p, args)
+    if key in _memo:
+        _memo.move_to_end(key)
+        return _memo[key]
+    value = _memo[key] = compute(system, q, p, args)
+    if len(_memo) > _MEMO_SIZE:
+        _memo.popitem(last=False)
+    return value
+
+
 def _velocity_program(system, q, p, args):
     r"""The jaxpr of $\partial H/\partial p$ in $(q, p, \text{array leaves of args})$,
     traced on shapes and dtypes only, and the function it traces."""
@@ -89,6 +124,10 @@ def velocity_dependence(system, q, p, args) -> tuple[bool, bool]:
     that vanish (such as `0 * q[0]`) counts as $q$-dependent. Array leaves of `args` are
     inputs of the program, never constants (they may be traced or differentiated).
     """
+    return _memoised("dependence", _velocity_dependence, system, q, p, args)
+
+
+def _velocity_dependence(system, q, p, args) -> tuple[bool, bool]:
     jaxpr, _, _ = _velocity_program(system, q, p, args)
     p_inputs = len(jax.tree.leaves(p))
     args_inputs = len(jaxpr.invars) - 1 - p_inputs
@@ -106,9 +145,16 @@ def evaluated_inverse_metric(system, q, p, args) -> np.ndarray:
     r"""$K = \partial^2H/\partial p^2$ as a NumPy array, for a system whose
     $\partial H/\partial p$ computes nothing from $q$ nor from the array leaves of
     `args` (`velocity_dependence`): a constant of the program, evaluated once, at
-    trace time, with zeros in place of the inputs it does not read."""
+    trace time, with zeros in place of the inputs it does not read (as one compiled
+    program: evaluated operation by operation, each would be compiled on its own)."""
+    return _memoised("inverse metric", _evaluated_inverse_metric, system, q, p, args)
+
+
+def _evaluated_inverse_metric(system, q, p, args) -> np.ndarray:
     _, velocity, dynamic = _velocity_program(system, q, p, args)
     zeros = lambda x: np.zeros(jnp.shape(x), jnp.result_type(x))  # noqa: E731
-    with jax.ensure_compile_time_eval():
-        inverse = jax.jacfwd(velocity, argnums=1)(zeros(q), zeros(p), jax.tree.map(zeros, dynamic))
-    return np.asarray(inverse)
+    inputs = (zeros(q), zeros(p), jax.tree.map(zeros, dynamic))
+    # Compiled ahead of time and called on NumPy zeros: executed, not staged into the
+    # program being traced.
+    compiled = jax.jit(jax.jacfwd(velocity, argnums=1)).lower(*inputs).compile()
+    return np.asarray(compiled(*inputs))

@@ -226,7 +226,15 @@ class AbstractMethod(diffrax.AbstractSolver):
     ) -> tuple[PyTree[Array], MethodState, RESULTS]:
         """One step of signed size `h` from `y0`: the new state (not yet replaced by NaN
         on failure, see `step_return`), the method state after it, and the step's code
-        (`step_failure`)."""
+        (`step_failure`).
+
+        diffrax traces a solver's step several times (to learn its output structure,
+        then in its loop, and again for derivatives), so the step is a `jax.jit` call
+        with the method, the system and the static arguments as its static arguments:
+        JAX traces it once for them and the shapes of the rest, and reuses the trace."""
+        return _advance(self, system, h, y0, args, solver_state)
+
+    def _advance(self, system, h, y0, args, solver_state):
         guess, data = self.setup(system, h, y0, args, solver_state.carry)
         # The root find runs on constants; its derivatives come from `_implicit_root`.
         guess, fixed_data = lax.stop_gradient(guess), no_gradient(data)
@@ -262,6 +270,11 @@ class AbstractMethod(diffrax.AbstractSolver):
             evaluations_finite, all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
         )
         return y1, solver_state.record(solution.stats["num_steps"], failure, carry), failure
+
+
+@eqx.filter_jit
+def _advance(method: AbstractMethod, system: AbstractSystem, h, y0, args, solver_state: MethodState):
+    return method._advance(system, h, y0, args, solver_state)
 
 
 class AbstractSymmetricSecondOrderMethod(AbstractMethod):
