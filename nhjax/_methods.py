@@ -34,41 +34,49 @@ class Method(NamedTuple):
 
 METHODS = {
     "gonzalez-r": Method(
-        "GONZALEZ-R", GonzalezR, False, True, True,
-        "§3.3, the discrete gradient on the reduced system in canonical coordinates: "
+        "GONZALEZ-R", GonzalezR,
+        adapted=False, keeps_energy=True, keeps_constraint=True,
+        description="§3.3, the discrete gradient on the reduced system in canonical coordinates: "
         "energy and constraint to roundoff",
     ),
     "gonzalez-f": Method(
-        "GONZALEZ-F", GonzalezF, False, True, False,
-        "§3.3, the direct method in canonical coordinates: energy to roundoff, the constraint not",
+        "GONZALEZ-F", GonzalezF,
+        adapted=False, keeps_energy=True, keeps_constraint=False,
+        description="§3.3, the direct method in canonical coordinates: energy to roundoff, the constraint not",
     ),
     "sidla": Method(
-        "SI-DLA", SIDLA, False, False, True,
-        "McLachlan & Perlmutter's semi-implicit DLA in canonical coordinates: constraint to "
+        "SI-DLA", SIDLA,
+        adapted=False, keeps_energy=False, keeps_constraint=True,
+        description="McLachlan & Perlmutter's semi-implicit DLA in canonical coordinates: constraint to "
         "roundoff, energy O(h^2)",
     ),
     "idla": Method(
-        "I-DLA", IDLA, False, False, True,
-        "the implicit DLA with the midpoint discrete Lagrangian in canonical coordinates: "
+        "I-DLA", IDLA,
+        adapted=False, keeps_energy=False, keeps_constraint=True,
+        description="the implicit DLA with the midpoint discrete Lagrangian in canonical coordinates: "
         "constraint to roundoff, energy O(h^2)",
     ),
     "spark": Method(
-        "SPARK", SPARK, False, False, True,
-        "2-stage Lobatto IIIA-B-C-C*-D SPARK in canonical coordinates: constraint to roundoff, "
+        "SPARK", SPARK,
+        adapted=False, keeps_energy=False, keeps_constraint=True,
+        description="2-stage Lobatto IIIA-B-C-C*-D SPARK in canonical coordinates: constraint to roundoff, "
         "energy O(h^2)",
     ),
     "avf": Method(
-        "AVF", functools.partial(DiscreteGradient, discrete_gradient=avf), True, True, True,
-        "DiscreteGradient(avf) on the reduced equations in adapted coordinates: energy to "
+        "AVF", functools.partial(DiscreteGradient, discrete_gradient=avf),
+        adapted=True, keeps_energy=True, keeps_constraint=True,
+        description="DiscreteGradient(avf) on the reduced equations in adapted coordinates: energy to "
         "roundoff, the constraint by construction",
     ),
     "gonzalez": Method(
-        "GONZALEZ", functools.partial(DiscreteGradient, discrete_gradient=gonzalez), True, True, True,
-        "DiscreteGradient(gonzalez) on the reduced equations in adapted coordinates: energy to "
+        "GONZALEZ", functools.partial(DiscreteGradient, discrete_gradient=gonzalez),
+        adapted=True, keeps_energy=True, keeps_constraint=True,
+        description="DiscreteGradient(gonzalez) on the reduced equations in adapted coordinates: energy to "
         "roundoff, the constraint by construction",
     ),
     "tsit5": Method(
-        "Tsit5", diffrax.Tsit5, False, False, False,
-        "Tsit5 at fixed steps on the index-1 ODE: the non-geometric baseline",
+        "Tsit5", diffrax.Tsit5,
+        adapted=False, keeps_energy=False, keeps_constraint=False,
+        description="Tsit5 at fixed steps on the index-1 ODE: the non-geometric baseline",
     ),
 }
