@@ -232,7 +232,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         then in its loop, and again for derivatives), so the step is a `jax.jit` call
         with the method, the system and the static arguments as its static arguments:
         JAX traces it once for them and the shapes of the rest, and reuses the trace."""
-        return _advance(self, system, h, y0, args, solver_state)
+        return _traced_once(self, system, h, y0, args, solver_state)
 
     def _advance(self, system, h, y0, args, solver_state):
         guess, data = self.setup(system, h, y0, args, solver_state.carry)
@@ -273,7 +273,7 @@ class AbstractMethod(diffrax.AbstractSolver):
 
 
 @eqx.filter_jit
-def _advance(method: AbstractMethod, system: AbstractSystem, h, y0, args, solver_state: MethodState):
+def _traced_once(method: AbstractMethod, system: AbstractSystem, h, y0, args, solver_state: MethodState):
     return method._advance(system, h, y0, args, solver_state)
 
 
