@@ -51,9 +51,9 @@ def _constraint_matrix(q):
 def test_frame_derivative_by_autodiff_matches_central_differences():
     q = jnp.array([0.3, -0.7, 1.1, 0.4])
     signs = householder_signs(_constraint_matrix(q).T)
-    frame = lambda x: householder_frame(_constraint_matrix(x).T, signs)[0]  # noqa: E731
-    forward = jax.jacfwd(frame)(q)
-    reverse = jax.jacrev(frame)(q)
+    frame = jax.jit(lambda x: householder_frame(_constraint_matrix(x).T, signs)[0])
+    forward = jax.jit(jax.jacfwd(frame))(q)
+    reverse = jax.jit(jax.jacrev(frame))(q)
     step = 1e-5
     central = jnp.stack(
         [(frame(q + step * e) - frame(q - step * e)) / (2 * step) for e in jnp.eye(4)], axis=-1

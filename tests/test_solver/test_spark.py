@@ -4,7 +4,6 @@ tableaux. (Order, the constraint to roundoff, the energy error and symmetry:
 test_methods.py; per-trajectory failures: test_faults.py.)"""
 
 import functools
-import math
 
 import diffrax
 import equinox as eqx
@@ -16,7 +15,7 @@ import pytest
 import nhjax as nh
 from nhjax._solver._spark_tableau import lobatto_coefficients, lobatto_constraint_weights
 
-from ..helpers import canonical_starts, fitted_order, reference_final_state, relative_energy_error, step_there_and_back
+from ..helpers import canonical_starts, final_state_errors, fitted_order, reference_final_state, relative_energy_error, step_there_and_back
 
 
 METHOD = nh.SPARK()
@@ -38,22 +37,9 @@ def _reference(name):
 
 
 def _end_state_errors(name, method):
-    """max |y(T1) - reference| for each step size, from one compiled program: every run
-    has the same n_steps and save_every (dt is traced), and the save at step T1/h is
-    read off."""
+    """max |y(T1) - reference| for each step size, from one compiled program."""
     example, y0 = STARTS[name]
-    steps = [round(T1 / h) for h in STEP_SIZES]
-    every = math.gcd(*steps)
-    reference = _reference(name)
-    errors = []
-    for h, m in zip(STEP_SIZES, steps):
-        solution = nh.integrate(
-            example.canonical, method, y0, h, max(steps), args=example.args, save_every=every
-        )
-        assert solution.result == nh.RESULTS.successful
-        final = jax.tree.map(lambda y: y[m // every], solution.ys)
-        errors.append(max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(final, reference)))
-    return errors
+    return final_state_errors(example.canonical, method, y0, T1, STEP_SIZES, _reference(name), example.args)
 
 
 def test_other_tableaux_run_through_the_same_stepper_at_their_orders():
