@@ -3,6 +3,7 @@ transform gives each example's Hamiltonian, every method gives the same trajecto
 from either form, derivatives with respect to the Lagrangian's parameters agree with
 finite differences, and a Lagrangian that is not of mechanical type is refused."""
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -72,7 +73,9 @@ def test_both_forms_give_the_same_trajectory(method, name):
 def test_derivatives_with_respect_to_the_lagrangians_parameters():
     """d x_1(t = 5) / d J on the Chaplygin sleigh with SI-DLA, from a start given by
     positions and velocities (its momentum M qdot depends on J too): from the
-    Lagrangian form, equal to the Hamiltonian form's and to a central difference."""
+    Lagrangian form, equal to the Hamiltonian form's and to a central difference.
+    Forward mode, the mode for one parameter (reverse mode through every method:
+    test_integrate_gradients.py)."""
     sleigh, (q0, _) = STARTS["sleigh, q-dependent M"]
     qdot0 = sleigh.frame(q0, sleigh.args) @ jnp.array([0.3, -0.6])  # on the constraint
     method = nh.SIDLA()
@@ -80,13 +83,12 @@ def test_derivatives_with_respect_to_the_lagrangians_parameters():
     def final_x(system, inertia):
         args = dict(sleigh.args, J=inertia)
         y0 = (q0, system.momentum_from_velocity(q0, qdot0, args))
-        return nh.integrate(system, method, y0, 0.1, 50, args=args, save_every=50).ys[0][-1, 0]
+        solution = nh.integrate(system, method, y0, 0.1, 50, args=args, save_every=50, adjoint=diffrax.ForwardMode())
+        return solution.ys[0][-1, 0]
 
     inertia = jnp.asarray(sleigh.args["J"], dtype=jnp.float64)
-    # Each jitted gradient is one program, where an eager one compiles its forward
-    # and transposed parts apart.
-    derived = jax.jit(jax.grad(lambda j: final_x(sleigh.canonical_from_lagrangian, j)))(inertia)
-    given = jax.jit(jax.grad(lambda j: final_x(sleigh.canonical, j)))(inertia)
+    derived = jax.jit(jax.jacfwd(lambda j: final_x(sleigh.canonical_from_lagrangian, j)))(inertia)
+    given = jax.jit(jax.jacfwd(lambda j: final_x(sleigh.canonical, j)))(inertia)
     step = 1e-5
     difference = (final_x(sleigh.canonical_from_lagrangian, inertia + step)
                   - final_x(sleigh.canonical_from_lagrangian, inertia - step)) / (2 * step)
