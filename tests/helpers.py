@@ -79,6 +79,11 @@ def step_there_and_back(system, method, y0, h, args=None):
     return back, (there, again)
 
 
+def _max_distance(y, reference) -> float:
+    """max |y - reference| over every leaf of two states (arrays or tuples of them)."""
+    return float(max(jax.tree.leaves(jax.tree.map(lambda a, b: jnp.max(jnp.abs(a - b)), y, reference))))
+
+
 def final_states(system, method, y0, t1, step_sizes, args=None):
     """The state at t1 for each step size, from one compiled program: each run takes the
     same number of steps (the most any size needs) with the same saving interval, dt is
@@ -99,31 +104,27 @@ def final_state_errors(system, method, y0, t1, step_sizes, reference, args=None,
     """max |observe(y(t1)) - reference| for each step size (`final_states`); states may
     be tuples such as (q, p)."""
     observe = (lambda y: y) if observe is None else observe
-    errors = []
-    for final in final_states(system, method, y0, t1, step_sizes, args):
-        difference = jax.tree.map(lambda a, b: jnp.max(jnp.abs(a - b)), observe(final), reference)
-        errors.append(float(max(jax.tree.leaves(difference))))
-    return errors
+    return [_max_distance(observe(final), reference) for final in final_states(system, method, y0, t1, step_sizes, args)]
 
 
-def runs_at_step_sizes(example, method, y0, step_sizes, n_steps):
+def runs_at_step_sizes(system, method, y0, step_sizes, n_steps, args=None):
     """`n_steps` steps of `method` from `y0` at each of `step_sizes`, one vmapped run
     (`throw=False`), every step saved."""
 
     def run(dt):
-        return nh.integrate(example.canonical, method, y0, dt, n_steps, args=example.args, throw=False)
+        return nh.integrate(system, method, y0, dt, n_steps, args=args, throw=False)
 
     return jax.vmap(run)(jnp.array(step_sizes))
 
 
-def errors_at(runs, step_sizes, t1, reference):
-    """For `runs_at_step_sizes` output: max |y(t1) - reference| at each step size."""
-    errors = []
-    for index, h in enumerate(step_sizes):
-        step = round(t1 / h)
-        final = (runs.ys[0][index, step], runs.ys[1][index, step])
-        errors.append(max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(final, reference)))
-    return errors
+def errors_at(runs, step_sizes, t1, reference, observe=None):
+    """For `runs_at_step_sizes` output: max |observe(y(t1)) - reference| at each step
+    size; states may be tuples such as (q, p)."""
+    observe = (lambda y: y) if observe is None else observe
+    return [
+        _max_distance(observe(jax.tree.map(lambda y: y[index, round(t1 / h)], runs.ys)), reference)
+        for index, h in enumerate(step_sizes)
+    ]
 
 
 def energy_variance_slopes(system, method, states, sizes=(0.2, 0.1), n_steps=20_000):

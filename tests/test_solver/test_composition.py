@@ -16,8 +16,10 @@ import nhjax as nh
 from ..helpers import (
     check_float32,
     check_per_trajectory_result_codes,
+    errors_at,
     fitted_order,
     relative_energy_error,
+    runs_at_step_sizes,
     step_there_and_back,
 )
 
@@ -80,14 +82,9 @@ def test_a_wrong_scheme_loses_the_order():
 
 
 def _runs(system, method, y0, t1, step_sizes, args=None):
-    """One vmapped program that takes t1 / min(step_sizes) steps at every size, every
-    step saved; every run must succeed."""
-    n_steps = round(t1 / min(step_sizes))
-
-    def run(dt):
-        return nh.integrate(system, method, y0, dt, n_steps, args=args, throw=False)
-
-    runs = jax.jit(jax.vmap(run))(jnp.asarray(step_sizes))
+    """`runs_at_step_sizes` with t1 / min(step_sizes) steps at every size; every run must
+    succeed."""
+    runs = runs_at_step_sizes(system, method, y0, step_sizes, round(t1 / min(step_sizes)), args)
     assert bool(jnp.all(runs.result == nh.RESULTS.successful))
     return runs
 
@@ -96,12 +93,7 @@ def _errors(system, method, y0, t1, step_sizes, reference, args=None, observe=la
     """max |observe(y(t1)) - reference| at each step size, from `_runs` (or the given
     `runs` of it)."""
     runs = _runs(system, method, y0, t1, step_sizes, args) if runs is None else runs
-    errors = []
-    for index, h in enumerate(step_sizes):
-        final = jax.tree.map(lambda y: y[index, round(t1 / h)], runs.ys)
-        difference = jax.tree.map(lambda a, b: jnp.max(jnp.abs(a - b)), observe(final), reference)
-        errors.append(float(max(jax.tree.leaves(difference))))
-    return errors
+    return errors_at(runs, step_sizes, t1, reference, observe)
 
 
 def _reference(system, y0, t1, args=None):

@@ -19,7 +19,7 @@ def test_the_constraint_violation_is_second_order():
     at the method's error, O(h^2): its maximum over t in [0, 5], from one compiled run
     per step size (vmapped over dt)."""
     y0 = GEARBOX.random_initial_state(jax.random.key(1))
-    runs = runs_at_step_sizes(GEARBOX, METHOD, y0, STEP_SIZES, 100)
+    runs = runs_at_step_sizes(GEARBOX.canonical, METHOD, y0, STEP_SIZES, 100, GEARBOX.args)
     assert bool(jnp.all(runs.result == nh.RESULTS.successful))
     violations = [
         float(jnp.max(jnp.abs(runs.constraint[index, : round(5.0 / h) + 1])))

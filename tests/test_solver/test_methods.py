@@ -41,7 +41,7 @@ CASES = [(method, start) for method in CANONICAL_METHODS for start in STARTS]
 @functools.cache
 def _runs(method, start):
     example, y0 = STARTS[start]
-    return runs_at_step_sizes(example, METHODS[method], y0, STEP_SIZES, N_STEPS)
+    return runs_at_step_sizes(example.canonical, METHODS[method], y0, STEP_SIZES, N_STEPS, example.args)
 
 
 @functools.cache

@@ -66,7 +66,7 @@ def test_constant_metric_path_equals_the_general_path(name):
     """The same method either way: equal to roundoff over the first 100 steps (later the
     quartic's chaos amplifies the rounding differences)."""
     example, y0 = STARTS[name]
-    fast, general = (runs_at_step_sizes(example, method, y0, (0.2, 0.1, 0.05), 100) for method in (METHOD, GENERAL))
+    fast, general = (runs_at_step_sizes(example.canonical, method, y0, (0.2, 0.1, 0.05), 100, example.args) for method in (METHOD, GENERAL))
     assert bool(jnp.all(fast.result == nh.RESULTS.successful))
     assert bool(jnp.all(general.result == nh.RESULTS.successful))
     for fast_leaf, general_leaf in zip(fast.ys, general.ys):
