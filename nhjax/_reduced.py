@@ -72,6 +72,22 @@ class ReducedSystem(eqx.Module):
     $(n, n)$ array. A caller who knows the metric is constant (GONZALEZ-R decides it from
     the program of $\partial H/\partial p$, `nhjax._dependence`) saves an $n \times n$
     solve at every evaluation, and for $M = I$ two.
+
+    **$M = I$ without the frame.** Where $H = \tfrac12|p|^2 + V(q)$, the Householder
+    frame is orthonormal, so $\mathcal{H}(q, \rho) = \tfrac12|X\rho|^2 + V =
+    \tfrac12|\rho|^2 + H(q, 0)$, and in (eq:Htgrad) the term $p^T\partial_iX\,y =
+    \rho^TX^T\partial_iX\rho$ vanishes ($X^T\partial_iX$ is skew, from $X^TX = I$):
+    $\nabla\mathcal{H} = (\partial_qH(q, 0), \rho)$. nhjax evaluates $\mathcal{H}$ in
+    this form, which needs no QR, and with `"autodiff"` $\nabla\mathcal{H}$ too, which
+    is then exactly the gradient of the function evaluated (the Gonzalez correction's
+    Taylor form assumes it). With `"central_difference"` the gradient stays (eq:Htgrad)
+    with the differenced $\partial X$, whose $X^T\partial_iX$ is skew only to
+    $O(\epsilon^2)$: the paper's method as its remark describes it.
+    The values differ from $H(q, X\rho)$ by rounding only; the energy a method keeps
+    exactly is $\mathcal{H}$, and $H(q', p')$ reported at $p' = X\rho'$ equals it to
+    rounding. The frame's derivatives then enter only $\Pi$, so derivative programs
+    (of a step's root, `nhjax._solver.base._implicit_root`) carry second derivatives of
+    the QR only there.
     """
 
     system: "NonholonomicSystem"
@@ -86,6 +102,9 @@ class ReducedSystem(eqx.Module):
             raise ValueError(f'metric must be "position", "identity" or an array, got {self.metric!r}.')
         if self.derivative == "central_difference" and self.difference_step is None:
             raise ValueError('derivative="central_difference" needs a difference_step.')
+
+    def _identity_metric(self) -> bool:
+        return isinstance(self.metric, str) and self.metric == "identity"
 
     def momentum_in_frame(self, q, frame, rho, args):
         """`momentum_in_frame` with this system's metric at `q`."""
@@ -104,6 +123,9 @@ class ReducedSystem(eqx.Module):
         return q, self.momentum_in_frame(q, frame, rho, args)[0]
 
     def hamiltonian(self, zeta, args) -> Float[Array, ""]:
+        if self._identity_metric():
+            q, rho = split_reduced(zeta, self.signs)
+            return self.system.hamiltonian(q, jnp.zeros_like(q), args) + 0.5 * rho @ rho
         q, p = self.from_reduced(zeta, args)
         return self.system.hamiltonian(q, p, args)
 
@@ -140,7 +162,10 @@ class ReducedSystem(eqx.Module):
         p, y = self.momentum_in_frame(q, frame, rho, args)
         contracted = jnp.einsum("j,jai->ai", p, derivative)
         along_frame = contracted @ frame
-        grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - y @ contracted
+        if self._identity_metric() and self.derivative == "autodiff":
+            grad_q = jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)
+        else:
+            grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - y @ contracted
         return along_frame - along_frame.T, jnp.concatenate([grad_q, y])
 
     def structure(self, zeta, args) -> Float[Array, "N N"]:
