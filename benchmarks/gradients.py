@@ -3,9 +3,10 @@ time against the forward run's, and peak memory.
 
 The loss is a smooth function of the final state after N steps at h = 0.1, for each N
 in `--steps` (default 2 000 and 100 000), differentiated with respect to the initial
-state (q0, p0) through `nhjax.integrate`: in reverse mode (`jax.grad`, the default
-adjoint `diffrax.RecursiveCheckpointAdjoint()`, O(log n) checkpoints) and in forward
-mode (`jax.jacfwd` with `diffrax.ForwardMode()`). Each measurement runs in its own
+state (q0, p0) through `nhjax.integrate`: in reverse mode (`jax.grad`) with the default
+adjoint (`nhjax._integrate.default_adjoint`: a checkpoint at every step while they fit
+in its memory budget) and with `diffrax.RecursiveCheckpointAdjoint()` (O(log n)
+checkpoints), and in forward mode (`jax.jacfwd` with `diffrax.ForwardMode()`). Each measurement runs in its own
 process, so that its peak resident memory (`ru_maxrss`) is its own; the peak after
 compilation is recorded too, so that what the run itself adds is visible.
 
@@ -19,6 +20,9 @@ import pathlib
 import resource
 import subprocess
 import sys
+
+
+_MODES = ("forward", "reverse", "reverse-log-checkpoints", "forward-mode")
 
 
 def _peak_mib() -> float:
@@ -37,7 +41,11 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
 
     gearbox = nh.examples.gearbox()
     y0 = gearbox.random_initial_state(jax.random.key(0))
-    adjoint = diffrax.ForwardMode() if mode == "forward-mode" else diffrax.RecursiveCheckpointAdjoint()
+    adjoint = dict(
+        forward=None,
+        reverse=None,
+        **{"reverse-log-checkpoints": diffrax.RecursiveCheckpointAdjoint(), "forward-mode": diffrax.ForwardMode()},
+    )[mode]
 
     def loss(y0):
         solution = nh.integrate(
@@ -46,7 +54,11 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
         q, p = solution.ys
         return jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
 
-    derivative = dict(forward=loss, reverse=jax.grad(loss), **{"forward-mode": jax.jacfwd(loss)})[mode]
+    derivative = dict(
+        forward=loss,
+        reverse=jax.grad(loss),
+        **{"reverse-log-checkpoints": jax.grad(loss), "forward-mode": jax.jacfwd(loss)},
+    )[mode]
     function = jax.jit(derivative)
     compile_s = timed(lambda y: function.lower(y).compile(), y0)
     compiled_peak = _peak_mib()
@@ -71,7 +83,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, nargs="+", default=[2_000, 100_000])
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--child", choices=("forward", "reverse", "forward-mode"))
+    parser.add_argument("--child", choices=_MODES)
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gradients.json"))
     options = parser.parse_args()
     if options.child:
@@ -83,7 +95,7 @@ def main():
     results = dict(dt=0.1, runs={})
     for steps in options.steps:
         run = {}
-        for mode in ("forward", "reverse", "forward-mode"):
+        for mode in _MODES:
             run[mode] = _in_subprocess(mode, steps, options.repeats)
             if mode != "forward":
                 run[mode]["time_ratio_to_forward"] = run[mode]["seconds"] / run["forward"]["seconds"]

@@ -5,9 +5,10 @@ vector field (`integrate_adaptive`), the non-geometric baseline and the tests' r
 **What a step costs.** For the implicit methods, the method's root find: for GONZALEZ-R
 the chord matrix and about four residuals (see `nhjax._solver.gonzalez_r`); around it
 the loop adds diffrax's bookkeeping and, at each save, the energy and constraint
-residual. Reverse-mode derivatives (`diffrax.RecursiveCheckpointAdjoint`) run each step
-again from a checkpoint and then the transpose of its linearisation, which for every
-method costs several forward steps. `python benchmarks/gradients.py` measures the time and
+residual. Reverse-mode derivatives (`diffrax.RecursiveCheckpointAdjoint`, by default
+with a checkpoint at every step, `default_adjoint`) run each step again from its
+checkpoint and then the transpose of its linearisation, which for every method costs
+several forward steps. `python benchmarks/gradients.py` measures the time and
 peak memory of a gradient against the forward run; `python benchmarks/suite.py` the
 forward steps of every method.
 """
@@ -181,6 +182,31 @@ def _adjoint_or_default(adjoint: diffrax.AbstractAdjoint | None) -> diffrax.Abst
     return adjoint
 
 
+# What one trajectory's checkpoints may occupy when every step keeps one.
+CHECKPOINT_BUDGET_BYTES = 32 * 2**20
+
+
+def default_adjoint(system, method, y0, args, dt, n_steps: int) -> diffrax.RecursiveCheckpointAdjoint:
+    r"""The reverse-mode adjoint of a fixed-step run: a checkpoint at every step where
+    `n_steps` checkpoints of the state and the method's solver state fit in
+    `CHECKPOINT_BUDGET_BYTES` (per trajectory: under `vmap` a batch of $B$ takes $B$
+    times as much), otherwise diffrax's $O(\log n)$ checkpoints.
+
+    With a checkpoint at every step the backward pass runs each step once more, then
+    the transpose of its linearisation; with $c < n$ checkpoints it first recomputes
+    steps from the nearest checkpoint, $O(n\log n)$ steps in all for $c = O(\log n)$.
+    `python benchmarks/gradients.py` measures both against the forward run."""
+    solver_state = jax.eval_shape(lambda: method.init(system, 0 * dt, dt, y0, args))
+    per_step = sum(
+        math.prod(leaf.shape) * jnp.dtype(leaf.dtype).itemsize
+        for leaf in jax.tree.leaves((y0, solver_state))
+        if hasattr(leaf, "dtype")
+    )
+    if n_steps * per_step <= CHECKPOINT_BUDGET_BYTES:
+        return diffrax.RecursiveCheckpointAdjoint(checkpoints=n_steps)
+    return diffrax.RecursiveCheckpointAdjoint()
+
+
 def _state_dtype(y0: PyTree) -> Any:
     return jnp.result_type(*jax.tree.leaves(y0))
 
@@ -212,9 +238,10 @@ def integrate(
     and `t0`. Each step's root is differentiated by the implicit function theorem, with
     the exact Jacobian of the step equations, not through the root finder's iterations,
     so derivatives are those of the exact discrete flow.
-    Reverse mode (`jax.grad`, `jax.jacrev`) uses the default `adjoint`,
-    `diffrax.RecursiveCheckpointAdjoint()`: memory O(log n_steps) states plus the
-    saves, time O(n log n). Forward mode (`jax.jvp`, `jax.jacfwd`) needs
+    Reverse mode (`jax.grad`, `jax.jacrev`) uses the default `adjoint`
+    (`default_adjoint`): a `diffrax.RecursiveCheckpointAdjoint` with a checkpoint at
+    every step where they fit in 32 MiB per trajectory, time O(n); beyond that
+    O(log n_steps) checkpoints, time O(n log n). Forward mode (`jax.jvp`, `jax.jacfwd`) needs
     `adjoint=diffrax.ForwardMode()`. A failed trajectory's outputs, the saves before
     the failure included, have NaN derivatives with respect to all of `y0`, `args`,
     `dt` and `t0`, never finite-looking wrong ones; under `vmap` its neighbours keep
@@ -237,7 +264,8 @@ def integrate(
         (e.g. to continue a GONZALEZ-F run, whose constraint residual drifts); every other
         check of the initial state stays. May be traced.
     - `adjoint`: how derivatives pass through the time loop (see above); `None` for
-        `diffrax.RecursiveCheckpointAdjoint()`.
+        `default_adjoint`'s choice. `diffrax.RecursiveCheckpointAdjoint()` keeps the
+        memory at O(log n_steps) states whatever the run's length or batch.
 
     **Errors.** Wrong shapes, a non-integer `n_steps`, and a concrete `dt` that is not
     positive and finite, `t0` or `args` leaf that is not finite raise a `ValueError` at
@@ -260,7 +288,7 @@ def integrate(
         t0,
         trace_floats(args),
         jnp.asarray(check_constraint, dtype=bool),
-        _adjoint_or_default(adjoint),
+        default_adjoint(system, method, y0, args, dt, int(n_steps)) if adjoint is None else _adjoint_or_default(adjoint),
         n_steps=int(n_steps),
         save_every=int(save_every),
         progress=bool(progress),

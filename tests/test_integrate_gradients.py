@@ -256,3 +256,17 @@ def test_adjoint_must_be_a_diffrax_adjoint():
     y0, args = _gearbox_start()
     with pytest.raises(ValueError, match="adjoint must be a diffrax adjoint"):
         nh.integrate(GEARBOX, nh.SIDLA(), y0, 0.1, 2, args=args, adjoint="forward")
+
+
+def test_default_adjoint_checkpoints_every_step_within_its_budget():
+    from nhjax._integrate import CHECKPOINT_BUDGET_BYTES, default_adjoint
+
+    y0, args = _gearbox_start()
+    dt = jnp.asarray(0.1)
+    per_step_floor = sum(leaf.nbytes for leaf in y0)  # the state alone; the method adds its own
+    assert default_adjoint(GEARBOX, nh.GonzalezR(), y0, args, dt, 1000).checkpoints == 1000
+    too_many = CHECKPOINT_BUDGET_BYTES // per_step_floor + 1
+    assert default_adjoint(GEARBOX, nh.GonzalezR(), y0, args, dt, too_many).checkpoints is None
+    # GONZALEZ-R carries more than the state from step to step, and that counts too.
+    fewer = CHECKPOINT_BUDGET_BYTES // (2 * per_step_floor)
+    assert default_adjoint(GEARBOX, nh.GonzalezR(), y0, args, dt, fewer).checkpoints is None
