@@ -31,6 +31,7 @@ from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import gonzalez_correction
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, ReducedSystem, split_reduced
+from ._rare_branch import rarely
 from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient
 
 
@@ -166,11 +167,15 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         )
         # The guess carries no derivatives (the root's come from the implicit function
         # theorem), so neither branch is differentiated: cut before the branch, so that
-        # derivative programs do not carry the Euler branch's linearisation.
-        velocity = lax.cond(
-            extrapolates,
-            lambda: carry.last_velocity + reach * (carry.last_velocity - carry.earlier_velocity),
-            lambda: no_gradient(reduced).vector_field(*no_gradient((zeta, args))),
+        # derivative programs do not carry the Euler branch's linearisation. Under vmap
+        # the batch evaluates the Euler branch only at the steps where some trajectory
+        # needs it (`rarely`), not at every step.
+        extrapolated = carry.last_velocity + reach * (carry.last_velocity - carry.earlier_velocity)
+        velocity = rarely(
+            ~extrapolates,
+            lambda operands: operands[0].vector_field(*operands[1:]),
+            lax.stop_gradient(extrapolated),
+            no_gradient((reduced, zeta, args)),
         )
         scale = increment_scale(zeta)
         guess = h * velocity / scale
