@@ -8,10 +8,13 @@ inverse), then about four residuals (the field at the midpoint, and $\mathcal{H}
 $\zeta'$ for the Gonzalez correction). The chord matrix costs several residuals, and
 its $n$ frame derivatives at shifted positions dominate as $n$ grows. Where
 $\partial H/\partial p$ does not depend on $q$ (checked on its program), the metric is
-a constant and $M = I$ costs nothing (`_metric`). Derivatives of a run add, per step,
-one linearisation of the residual (its Jacobian in the unknowns and its derivative
-along the data, `nhjax._solver.base._implicit_root`), whose second derivatives of the
-frame through the QR make most of the derivative program. Measured part by part by
+a constant (`_metric`); for $M = I$, $\mathcal{H}$ and its gradient need no frame at all
+(`nhjax._reduced.ReducedSystem`), so the Gonzalez correction costs no QR. Under `vmap`
+the predictor's Euler branch runs only at the steps where some trajectory needs it
+(`nhjax._solver._rare_branch.rarely`). Derivatives of a run add, per step, one
+linearisation of the residual (its Jacobian in the unknowns and its derivative along
+the data, `nhjax._solver.base._implicit_root`), whose second derivatives of the frame
+through the QR in $\Pi$ make most of the derivative program. Measured part by part by
 `python benchmarks/_profile.py`, whole steps against the implicit-midpoint yardstick
 and the NumPy route by `python benchmarks/gonzalez_r.py`, derivatives by
 `python benchmarks/gradients.py` (results in `benchmarks/results/`).
