@@ -1,16 +1,16 @@
 """Derivatives through long GONZALEZ-R runs on the gearbox: their compile time, their
 time against the forward run's, and peak memory.
 
-The loss is a smooth function of the final state after N steps at h = 0.1, for each N
-in `--steps` (default 2 000 and 100 000), differentiated with respect to the initial
-state (q0, p0) through `nhjax.integrate`: in reverse mode (`jax.grad`) with the default
+The loss is a smooth function of the final state after N steps at h = 0.1, for each N in
+`--steps` (default 2 000 and 100 000), differentiated with respect to the initial state
+(q0, p0) through `nhjax.integrate`: in reverse mode (`jax.grad`) with the default
 adjoint (`nhjax._integrate.default_adjoint`: a checkpoint at every step while they fit
 in its memory budget) and with `diffrax.RecursiveCheckpointAdjoint()` (O(log n)
-checkpoints), and in forward mode (`jax.jacfwd` with `diffrax.ForwardMode()`). Each measurement runs in its own
-process, so that its peak resident memory (`ru_maxrss`) is its own; the peak after
-compilation is recorded too, so that what the run itself adds is visible. A
-derivative's time ratio to the forward run comes from its own process, the two timed in
-turn after the memory is recorded.
+checkpoints), and in forward mode (`jax.jacfwd` with `diffrax.ForwardMode()`). Each
+measurement runs in its own process, so that its peak resident memory (`ru_maxrss`) is
+its own; the peak after compilation is recorded too, so that what the run itself adds is
+visible. A derivative's time ratio to the forward run comes from its own process, the
+two timed in turn after the memory is recorded.
 
 Run: python benchmarks/gradients.py [--steps N ...] [--repeats R]
 Medians over repeats; results go to benchmarks/results/gradients.json.
@@ -43,11 +43,13 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
 
     gearbox = nh.examples.gearbox()
     y0 = gearbox.random_initial_state(jax.random.key(0))
-    adjoint = dict(
-        forward=None,
-        reverse=None,
-        **{"reverse-log-checkpoints": diffrax.RecursiveCheckpointAdjoint(), "forward-mode": diffrax.ForwardMode()},
-    )[mode]
+    # Each mode: the adjoint (None: nhjax's default) and what is taken of the loss.
+    adjoint, transform = {
+        "forward": (None, lambda function: function),
+        "reverse": (None, jax.grad),
+        "reverse-log-checkpoints": (diffrax.RecursiveCheckpointAdjoint(), jax.grad),
+        "forward-mode": (diffrax.ForwardMode(), jax.jacfwd),
+    }[mode]
 
     def loss(y0):
         solution = nh.integrate(
@@ -56,12 +58,7 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
         q, p = solution.ys
         return jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
 
-    derivative = dict(
-        forward=loss,
-        reverse=jax.grad(loss),
-        **{"reverse-log-checkpoints": jax.grad(loss), "forward-mode": jax.jacfwd(loss)},
-    )[mode]
-    function = jax.jit(derivative)
+    function = jax.jit(transform(loss))
     compile_s = timed(lambda y: function.lower(y).compile(), y0)
     compiled_peak = _peak_mib()
     value, seconds = run_and_time(function, y0, repeats=repeats)

@@ -174,12 +174,15 @@ def _nonfinite_saves(saved: PyTree) -> Bool[Array, " n_saved"]:
     return jnp.any(jnp.stack(flags), axis=0)
 
 
-def _adjoint_or_default(adjoint: diffrax.AbstractAdjoint | None) -> diffrax.AbstractAdjoint:
-    if adjoint is None:
-        return diffrax.RecursiveCheckpointAdjoint()
-    if not isinstance(adjoint, diffrax.AbstractAdjoint):
+def _checked_adjoint(adjoint: diffrax.AbstractAdjoint | None) -> diffrax.AbstractAdjoint | None:
+    if adjoint is not None and not isinstance(adjoint, diffrax.AbstractAdjoint):
         raise ValueError(f"adjoint must be a diffrax adjoint, got {adjoint!r}.")
     return adjoint
+
+
+def _adjoint_or_default(adjoint: diffrax.AbstractAdjoint | None) -> diffrax.AbstractAdjoint:
+    adjoint = _checked_adjoint(adjoint)
+    return diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
 
 
 # What one trajectory's checkpoints may occupy when every step keeps one.
@@ -288,7 +291,7 @@ def integrate(
         t0,
         trace_floats(args),
         jnp.asarray(check_constraint, dtype=bool),
-        default_adjoint(system, method, y0, args, dt, int(n_steps)) if adjoint is None else _adjoint_or_default(adjoint),
+        _checked_adjoint(adjoint),
         n_steps=int(n_steps),
         save_every=int(save_every),
         progress=bool(progress),
@@ -357,6 +360,8 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
     startable = initial_result == RESULTS.successful
     y_start = nan_where_failed(~startable, y0, y0)
 
+    if adjoint is None:  # chosen here, once per compilation
+        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     solution = diffrax.diffeqsolve(
         system,

@@ -108,9 +108,9 @@ class ReducedSystem(eqx.Module):
 
     def momentum_in_frame(self, q, frame, rho, args):
         """`momentum_in_frame` with this system's metric at `q`."""
-        if isinstance(self.metric, str):
-            if self.metric == "identity":
-                return momentum_in_frame(frame, rho)
+        if self._identity_metric():
+            return momentum_in_frame(frame, rho)
+        if isinstance(self.metric, str):  # "position"
             weighted = solve_spd(self.system.inverse_metric(q, args), frame)
         else:
             weighted = self.metric @ frame
