@@ -24,6 +24,9 @@ METHODS["gonzalez-r-central-difference"] = nh.GonzalezR(derivative="central_diff
 CANONICAL_METHODS = [name for name in METHODS if name in REGISTRY and not REGISTRY[name].adapted]
 KEEPS_ENERGY = {name for name in CANONICAL_METHODS if REGISTRY[name].keeps_energy}
 KEEPS_CONSTRAINT = {name for name in CANONICAL_METHODS if REGISTRY[name].keeps_constraint}
+# For the few runs long enough that their running time outweighs their compilation
+# (tests/conftest.py compiles everything else at XLA's lowest optimisation level).
+FULL_OPTIMISATION = {"xla_backend_optimization_level": "2"}
 
 
 def canonical_starts():
@@ -137,7 +140,9 @@ def energy_variance_slopes(system, method, states, sizes=(0.2, 0.1), n_steps=20_
     def run(y, h):
         return nh.integrate(system, method, y, h, n_steps, save_every=n_steps // 40)
 
-    solution = jax.jit(jax.vmap(run))(batch, sizes)
+    # Long runs: compiled at XLA's full optimisation, whatever the suite's level.
+    compiled = jax.jit(jax.vmap(run)).lower(batch, sizes).compile(compiler_options=FULL_OPTIMISATION)
+    solution = compiled(batch, sizes)
     assert bool(jnp.all(solution.result == nh.RESULTS.successful))
     slopes = []
     for h, energy, times in zip(*(jnp.split(x, 2) for x in (sizes, solution.energy, solution.ts))):

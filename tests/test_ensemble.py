@@ -126,7 +126,8 @@ _TWO_DEVICES = textwrap.dedent(
 def test_two_cpu_devices_give_the_unsharded_result():
     """A fresh process with two CPU devices: the batch split over both (even, and odd
     with padding) gives the numbers of one `vmap` on one device."""
-    environment = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    environment = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     completed = subprocess.run(
         [sys.executable, "-c", _TWO_DEVICES], env=environment, capture_output=True, text=True, timeout=600
     )
