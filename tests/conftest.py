@@ -3,8 +3,9 @@ import shutil
 import tempfile
 
 # Most of the suite's time is XLA compiling programs that then run for milliseconds, so
-# the suite compiles at LLVM's lowest optimisation level: about a fifth less time in all,
-# with results that differ by roundoff only (every tolerance here holds at either level).
+# the suite compiles at XLA's lowest optimisation level, which compiles faster and runs
+# slower, with results that differ by roundoff only (every tolerance here holds at either
+# level; the few long runs ask for full optimisation, `helpers.FULL_OPTIMISATION`).
 # A level already set in XLA_FLAGS is kept: `XLA_FLAGS=--xla_backend_optimization_level=2`
 # runs the suite on the programs as users' runs compile them. Set before JAX starts XLA.
 if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):

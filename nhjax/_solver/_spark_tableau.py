@@ -167,7 +167,18 @@ def lobatto_constraint_weights(b, c) -> np.ndarray:
     polynomial interpolating $g(Q_j, P_j)$ at the nodes is orthogonal to all polynomials
     of degree $\le s - 2$ on $[0, 1]$ (the quadrature is exact for these products). That
     set of equations is unchanged by $t \mapsto 1 - t$, which the method's symmetry
-    needs. For $s = 2$: $(g(Y_1) + g(Y_2))/2 = 0$."""
+    needs. For $s = 2$: $(g(Y_1) + g(Y_2))/2 = 0$.
+
+    **The same equations as the IIIA form.** Jay's SPARK methods for index-2 problems
+    (Jay 2003, BIT 43:93) are also written, for instance in Verdier's `odelab`, with the
+    stage constraints $\sum_j a_{ij}\,g(Y_j) = 0$, $i = 2, \dots, s$, $a$ = Lobatto
+    IIIA. Both forms say something about the polynomial $p$ of degree $s - 1$ through
+    the $s$ values $g(Y_j)$. With $P(t) = \int_0^t p$, the IIIA form says $P(c_i) = 0$
+    at every node, so $P \propto t(1 - t)P'_{s-1}(2t - 1)$, whose zeros are the Lobatto
+    nodes. By Legendre's equation $p = P' \propto P_{s-1}(2t - 1)$. That is exactly the
+    polynomial of degree $s - 1$ orthogonal to every polynomial of degree $\le s - 2$,
+    which is what these weights say. The solution sets are the same, so the two sets of
+    rows span the same space (tested for $s = 2, \dots, 5$)."""
     b, c = np.asarray(b, dtype=float), np.asarray(c, dtype=float)
     return b[None, :] * c[None, :] ** np.arange(len(b) - 1)[:, None]
 

@@ -132,6 +132,19 @@ def test_lobatto_tableaux():
             np.testing.assert_allclose(matrix + matrix[::-1, ::-1], np.broadcast_to(b, (s, s)), atol=1e-14)
 
 
+@pytest.mark.parametrize("s", [2, 3, 4, 5])
+def test_the_stage_constraints_are_those_of_the_lobatto_iiia_form(s):
+    """The weights b_j c_j^(i-1) and the rows 2..s of Lobatto IIIA (the form in which
+    Jay's stage constraints are also written) span the same s - 1 equations; the rows of
+    IIIC*, other equations, do not."""
+    coefficients = lobatto_coefficients(s)
+    weights = lobatto_constraint_weights(coefficients["b"], coefficients["c"])
+    rank = lambda matrix: np.linalg.matrix_rank(matrix, tol=1e-10)  # noqa: E731
+    assert rank(weights) == rank(coefficients["IIIA"][1:]) == s - 1
+    assert rank(np.concatenate([weights, coefficients["IIIA"][1:]])) == s - 1
+    assert rank(np.concatenate([weights, coefficients["IIIC*"][1:]])) > s - 1
+
+
 def test_invalid_tableaux_are_rejected():
     two = lobatto_coefficients(2)
     valid = dict(
