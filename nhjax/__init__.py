@@ -25,6 +25,7 @@ from ._solver import (
     GonzalezF as GonzalezF,
     GonzalezR as GonzalezR,
     IDLA as IDLA,
+    LOBATTO_IIIA_B_2 as LOBATTO_IIIA_B_2,
     LOBATTO_IIIA_B_C_CSTAR_D_2 as LOBATTO_IIIA_B_C_CSTAR_D_2,
     lobatto_spark_tableau as lobatto_spark_tableau,
     midpoint_structure as midpoint_structure,

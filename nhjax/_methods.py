@@ -59,7 +59,8 @@ METHODS = {
     "spark": Method(
         "SPARK", SPARK,
         adapted=False, keeps_energy=False, keeps_constraint=True,
-        description="2-stage Lobatto IIIA-B-C-C*-D SPARK in canonical coordinates: constraint to roundoff, "
+        description="2-stage Lobatto SPARK (Jay's IIIA-B-C-C*-D family: IIIA for the velocity, IIIB for "
+        "every force, the constraint force included) in canonical coordinates: constraint to roundoff, "
         "energy O(h^2)",
     ),
     "avf": Method(

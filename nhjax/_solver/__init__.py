@@ -14,6 +14,7 @@ from .gonzalez_f import GonzalezF as GonzalezF
 from .idla import IDLA as IDLA
 from .sidla import SIDLA as SIDLA
 from .spark import (
+    LOBATTO_IIIA_B_2 as LOBATTO_IIIA_B_2,
     LOBATTO_IIIA_B_C_CSTAR_D_2 as LOBATTO_IIIA_B_C_CSTAR_D_2,
     lobatto_spark_tableau as lobatto_spark_tableau,
     SPARK as SPARK,

@@ -212,6 +212,18 @@ def lobatto_spark_tableau(s: int = 2, constraint_force: str = "IIID") -> SPARKTa
     )
 
 
+# The default of `nhjax.SPARK`, s = 2, exact: IIIA [[0, 0], [1/2, 1/2]] for the velocity,
+# IIIB [[1/2, 0], [1/2, 0]] for every force, the constraint force included (see `SPARK`).
+LOBATTO_IIIA_B_2 = SPARKTableau(
+    c=(0.0, 1.0),
+    b=(0.5, 0.5),
+    velocity=((0.0, 0.0), (0.5, 0.5)),
+    force=((0.5, 0.0), (0.5, 0.0)),
+    constraint_force=((0.5, 0.0), (0.5, 0.0)),
+    constraint_weights=((0.5, 0.5),),
+    order=2,
+)
+
 # Jay's coefficients for s = 2, exact: IIIA [[0, 0], [1/2, 1/2]], IIIB [[1/2, 0], [1/2, 0]],
 # IIID = (IIIC + IIIC*)/2 = ([[1/2, -1/2], [1/2, 1/2]] + [[0, 0], [1, 0]])/2.
 LOBATTO_IIIA_B_C_CSTAR_D_2 = SPARKTableau(

@@ -1,4 +1,4 @@
-"""SPARK (Lobatto IIIA-B-C-C*-D): the tableau-driven stepper with other tableaux, what
+"""SPARK (Jay's Lobatto SPARK methods): the tableau-driven stepper with other tableaux, what
 a tableau that is not self-adjoint does, a traced step size, float32, and the Lobatto
 tableaux. (Order, the constraint to roundoff, the energy error and symmetry:
 test_methods.py; per-trajectory failures: test_faults.py.)"""
@@ -19,7 +19,7 @@ from ..helpers import canonical_starts, final_state_errors, fitted_order, refere
 
 
 METHOD = nh.SPARK()
-RATTLE = nh.SPARK(nh.lobatto_spark_tableau(2, constraint_force="IIIB"))
+IIID = nh.SPARK(nh.LOBATTO_IIIA_B_C_CSTAR_D_2)
 LOBATTO_3 = nh.SPARK(nh.lobatto_spark_tableau(3))
 STEP_SIZES = (0.2, 0.1, 0.05)
 T1 = 5.0
@@ -43,14 +43,18 @@ def _end_state_errors(name, method):
 
 
 def test_other_tableaux_run_through_the_same_stepper_at_their_orders():
-    """The nonholonomic RATTLE (constraint force on IIIB) is a different second-order
-    method; the 3-stage Lobatto IIIA-B-C-C*-D tableau gives order 4 = 2s - 2."""
+    """The constraint force on IIID instead of IIIB is a different second-order method,
+    time-symmetric too; the 3-stage Lobatto IIIA-B-C-C*-D tableau gives order 4 = 2s - 2."""
     name = "gearbox, M = I"
     default = _end_state_errors(name, METHOD)
-    rattle = _end_state_errors(name, RATTLE)
+    iiid = _end_state_errors(name, IIID)
     three_stage = _end_state_errors(name, LOBATTO_3)
-    assert 1.8 <= fitted_order(STEP_SIZES, rattle) <= 2.2, rattle
-    assert abs(rattle[-1] - default[-1]) > 0.05 * default[-1], (rattle, default)
+    assert 1.8 <= fitted_order(STEP_SIZES, iiid) <= 2.2, iiid
+    assert abs(iiid[-1] - default[-1]) > 0.05 * default[-1], (iiid, default)
+    example, y0 = STARTS[name]
+    back, results = there_and_back(example.canonical, IIID, y0, 0.2)
+    assert all(result == diffrax.RESULTS.successful for result in results)
+    np.testing.assert_allclose(back[1], y0[1], rtol=0, atol=1e-14)
     assert LOBATTO_3.order(None) == 4
     assert 3.7 <= fitted_order(STEP_SIZES, three_stage) <= 4.3, three_stage
     assert three_stage[-1] < 1e-2 * default[-1]
@@ -113,7 +117,8 @@ def test_lobatto_tableaux():
     """The s-stage construction reproduces the named 2-stage tableau exactly and the
     known 3-stage rational coefficients; IIIA, IIIB, IIID are self-adjoint."""
     assert nh.lobatto_spark_tableau(2) == nh.LOBATTO_IIIA_B_C_CSTAR_D_2
-    assert nh.SPARK().tableau == nh.LOBATTO_IIIA_B_C_CSTAR_D_2
+    assert nh.lobatto_spark_tableau(2, constraint_force="IIIB") == nh.LOBATTO_IIIA_B_2
+    assert nh.SPARK().tableau == nh.LOBATTO_IIIA_B_2
     three = lobatto_coefficients(3)
     np.testing.assert_allclose(three["b"], [1 / 6, 2 / 3, 1 / 6], atol=1e-15)
     known = {
