@@ -3,7 +3,11 @@ r"""The Chaplygin sleigh of §4.2: a rigid body on the plane with a knife edge.
 $q = (x_1, x_2, \theta)$, kinetic energy with the metric
 $\begin{pmatrix} m & 0 & -ma\sin\theta \\ 0 & m & ma\cos\theta \\
 -ma\sin\theta & ma\cos\theta & J + ma^2 \end{pmatrix}$, constraint
-$-\dot x_1\sin\theta + \dot x_2\cos\theta = 0$. Orthonormal frame of $\mathcal{D}$:
+$-\dot x_1\sin\theta + \dot x_2\cos\theta = 0$. With the blade direction
+$u = (-\sin\theta, \cos\theta)$ the metric is $\begin{pmatrix} mI & ma\,u \\
+ma\,u^T & J + ma^2\end{pmatrix}$, whose Schur complement is $J$, so
+$H = |p_x|^2/2m + (p_\theta - a\,u\cdot p_x)^2/2J$ with $p_x = (p_1, p_2)$: the
+canonical form needs no linear solve. Orthonormal frame of $\mathcal{D}$:
 $X_1 = \partial_\theta/\sqrt{J + ma^2}$,
 $X_2 = (\cos\theta\,\partial_{x_1} + \sin\theta\,\partial_{x_2})/\sqrt{m}$. Adapted state
 $(x_1, x_2, \theta, \rho_1, \rho_2)$, $\mathcal{H} = \tfrac12(\rho_1^2 + \rho_2^2)$ and the
@@ -77,7 +81,10 @@ def _structure(x, args):
 
 
 def _canonical_hamiltonian(q, p, args):
-    return 0.5 * p @ jnp.linalg.solve(_metric(q, args), p)
+    J, a, m = _parameters(args)
+    theta = q[2]
+    along_blade = -jnp.sin(theta) * p[0] + jnp.cos(theta) * p[1]
+    return 0.5 * (p[0] ** 2 + p[1] ** 2) / m + 0.5 * (p[2] - a * along_blade) ** 2 / J
 
 
 def _lagrangian(q, qdot, args):
