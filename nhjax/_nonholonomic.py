@@ -17,7 +17,7 @@ from ._lagrangian import Lagrangian, LegendreHamiltonian
 from ._linalg import is_quadratic_form, solve_spd
 from ._householder import householder_frame, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
-from ._reduced import Derivative, momentum_in_frame, ReducedSystem
+from ._reduced import Derivative, ReducedSystem
 from ._system import AbstractSystem, SkewGradientSystem, require_floating_vector, require_scalar
 
 
@@ -175,12 +175,6 @@ class NonholonomicSystem(AbstractSystem):
         full_rank = jnp.all(norms > _tolerance(a.dtype, jnp.max(jnp.abs(a))))
         smooth = jnp.all(pivots > 0.1 * norms)
         return RESULTS.where(full_rank & smooth, RESULTS.successful, RESULTS.constraints_rank_deficient)
-
-    def momentum(self, q, rho, args, signs) -> Float[Array, " n"]:
-        r"""$p = M X (X^T M X)^{-1}\rho$, eq. (ptoptilde): the momentum on the constraint
-        with $X^T p = \rho$."""
-        frame = self.frame(q, args, signs)
-        return momentum_in_frame(frame, rho, solve_spd(self.inverse_metric(q, args), frame))[0]
 
     def to_reduced(self, y, args, signs) -> Float[Array, " n+m"]:
         r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""

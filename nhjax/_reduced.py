@@ -44,6 +44,41 @@ def momentum_in_frame(frame, rho, weighted=None):
     return weighted @ y, y
 
 
+def momentum_by_projection(system: "NonholonomicSystem", q, frame, rho, args):
+    r"""Eq. (ptoptilde) where $M$ depends on $q$, without forming $M$: the $p$ and $y$
+    of `momentum_in_frame`, from products with $K = M^{-1}$ alone.
+
+    $p = MX(X^TMX)^{-1}\rho$ is the momentum with $X^Tp = \rho$ whose velocity $Kp$
+    lies in $\mathcal{D} = \ker A$. As the columns of $X$ are orthonormal and
+    orthogonal to those of $A^T$, these two conditions say
+
+    $$p = X\rho + A^T\lambda, \qquad AKA^T\lambda = -AKX\rho, \qquad
+      y = X^TKp:$$
+
+    one $k \times k$ solve in place of an $n \times n$ one (for $MX$) and an
+    $m \times m$ one (for $y$). The products $Kw$, for $w = X\rho$ and the columns of
+    $A^T$, are derivatives of the velocity $\partial H/\partial p$ at $p = 0$ along
+    $w$: $k + 1$ of them, where `NonholonomicSystem.inverse_metric` takes $n$.
+
+    $y$ is $\partial\mathcal{H}/\partial\rho$: with $p = P\rho$,
+    $P = (I - A^T(AKA^T)^{-1}AK)X$, $\partial\mathcal{H}/\partial\rho = P^TKp =
+    X^TKp - X^TKA^T(AKA^T)^{-1}AKp = X^TKp$, since $AKp = 0$. Programs differentiated
+    through a step (GONZALEZ-R's derivatives) are smaller this way than through the
+    two unrolled solves."""
+    a = system.constraints(q, args)
+    zero = jnp.zeros_like(q)
+
+    def times_inverse_metric(w):
+        return jax.jvp(lambda p: system.velocity(q, p, args), (zero,), (w,))[1]
+
+    along_frame = frame @ rho
+    products = jax.vmap(times_inverse_metric)(jnp.concatenate([along_frame[None], a], axis=0))
+    k_along_frame, k_a_t = products[0], products[1:].T
+    multiplier = -solve_spd(a @ k_a_t, a @ k_along_frame)
+    p = along_frame + a.T @ multiplier
+    return p, frame.T @ (k_along_frame + k_a_t @ multiplier)
+
+
 def split_reduced(zeta, signs):
     """$(q, \\rho)$ from $\\zeta$ of size $n + m = 2n - k$."""
     n = (zeta.shape[0] + signs.shape[0]) // 2
@@ -67,11 +102,12 @@ class ReducedSystem(eqx.Module):
     paper's finite-difference remark, with $\epsilon$ = `difference_step` (GONZALEZ-R
     passes $|h|$, as the paper does, so the method stays second order).
 
-    `metric` says how $M(q)$ is found: `"position"` (default) from
-    $\partial^2H/\partial p^2$ at each $q$; `"identity"` for $M = I$; or a constant
-    $(n, n)$ array. A caller who knows the metric is constant (GONZALEZ-R decides it from
-    the program of $\partial H/\partial p$, `nhjax._dependence`) saves an $n \times n$
-    solve at every evaluation, and for $M = I$ two.
+    `metric` says how $M(q)$ enters: `"position"` (default) through products with
+    $\partial^2H/\partial p^2$ at each $q$ (`momentum_by_projection`); `"identity"` for
+    $M = I$; or a constant $(n, n)$ array. A caller who knows the metric is constant
+    (GONZALEZ-R decides it from the program of $\partial H/\partial p$,
+    `nhjax._dependence`) saves the $k + 1$ products and a $k \times k$ solve at every
+    evaluation for an $m \times m$ solve, and for $M = I$ needs no solve.
 
     **$M = I$ without the frame.** Where $H = \tfrac12|p|^2 + V(q)$, the Householder
     frame is orthonormal, so $\mathcal{H}(q, \rho) = \tfrac12|X\rho|^2 + V =
@@ -107,14 +143,13 @@ class ReducedSystem(eqx.Module):
         return isinstance(self.metric, str) and self.metric == "identity"
 
     def momentum_in_frame(self, q, frame, rho, args):
-        """`momentum_in_frame` with this system's metric at `q`."""
+        """`momentum_in_frame` with this system's metric at `q`; for a metric that
+        depends on $q$, `momentum_by_projection`."""
         if self._identity_metric():
             return momentum_in_frame(frame, rho)
         if isinstance(self.metric, str):  # "position"
-            weighted = solve_spd(self.system.inverse_metric(q, args), frame)
-        else:
-            weighted = self.metric @ frame
-        return momentum_in_frame(frame, rho, weighted)
+            return momentum_by_projection(self.system, q, frame, rho, args)
+        return momentum_in_frame(frame, rho, self.metric @ frame)
 
     def from_reduced(self, zeta, args) -> tuple[Array, Array]:
         r"""$(q, p)$ from $\zeta = (q, \rho)$, eq. (ptoptilde)."""
