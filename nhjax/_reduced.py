@@ -57,8 +57,9 @@ def momentum_by_projection(system: "NonholonomicSystem", q, frame, rho, args):
 
     one $k \times k$ solve in place of an $n \times n$ one (for $MX$) and an
     $m \times m$ one (for $y$). The products $Kw$, for $w = X\rho$ and the columns of
-    $A^T$, are derivatives of the velocity $\partial H/\partial p$ at $p = 0$ along
-    $w$: $k + 1$ of them, where `NonholonomicSystem.inverse_metric` takes $n$.
+    $A^T$, are velocities $\partial H/\partial p$ at $p = w$, as $H$ is of mechanical
+    type (quadratic in $p$ with no linear term, checked at the start of a run): $k + 1$
+    gradients, where `NonholonomicSystem.inverse_metric` differentiates $n$ of them.
 
     $y$ is $\partial\mathcal{H}/\partial\rho$: with $p = P\rho$,
     $P = (I - A^T(AKA^T)^{-1}AK)X$, $\partial\mathcal{H}/\partial\rho = P^TKp =
@@ -66,13 +67,9 @@ def momentum_by_projection(system: "NonholonomicSystem", q, frame, rho, args):
     through a step (GONZALEZ-R's derivatives) are smaller this way than through the
     two unrolled solves."""
     a = system.constraints(q, args)
-    zero = jnp.zeros_like(q)
-
-    def times_inverse_metric(w):
-        return jax.jvp(lambda p: system.velocity(q, p, args), (zero,), (w,))[1]
-
     along_frame = frame @ rho
-    products = jax.vmap(times_inverse_metric)(jnp.concatenate([along_frame[None], a], axis=0))
+    velocity = lambda w: system.velocity(q, w, args)  # noqa: E731
+    products = jax.vmap(velocity)(jnp.concatenate([along_frame[None], a], axis=0))
     k_along_frame, k_a_t = products[0], products[1:].T
     multiplier = -solve_spd(a @ k_a_t, a @ k_along_frame)
     p = along_frame + a.T @ multiplier
