@@ -29,6 +29,7 @@ from ._solver import (
     LOBATTO_IIIA_B_C_CSTAR_D_2 as LOBATTO_IIIA_B_C_CSTAR_D_2,
     lobatto_spark_tableau as lobatto_spark_tableau,
     midpoint_structure as midpoint_structure,
+    Projection as Projection,
     SIDLA as SIDLA,
     SPARK as SPARK,
     SPARKTableau as SPARKTableau,

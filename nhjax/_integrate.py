@@ -27,6 +27,7 @@ from jaxtyping import Array, Bool, Float, PyTree
 
 from ._results import first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, RESULTS
 from ._solver.base import AbstractMethodState
+from ._solver.projection import Projection
 from ._system import AbstractSystem
 
 
@@ -412,8 +413,11 @@ def integrate_adaptive(
     eliminated from $\tfrac{d}{dt}[A(q)\partial_pH] = 0$: what a user without
     nhjax's methods would integrate. Neither energy nor constraint is preserved beyond
     the tolerance, and the constraint drifts over long times; at tight tolerance this is
-    the high-accuracy reference for convergence tests. For fixed steps of a standard
-    solver (e.g. `diffrax.Tsit5()`) use `nhjax.integrate` with that solver.
+    the high-accuracy reference for convergence tests. With
+    `solver=nhjax.Projection(diffrax.Dopri8())` every step ends on the energy level and
+    the constraint, to roundoff, at Dopri8's order (every saved time is then made a
+    step end). For fixed steps of a standard solver (e.g. `diffrax.Tsit5()`) use
+    `nhjax.integrate` with that solver.
 
     **Arguments:** `save_at`, the times to save (default `[t0, t1]`, inside `[t0, t1]`);
     `rtol`, `atol` for the controller, `None` for the default of the state's dtype,
@@ -422,7 +426,7 @@ def integrate_adaptive(
     chase the rounding with ever smaller steps); `max_steps`; `throw` and `adjoint` as
     for `nhjax.integrate`.
     Returns a `Solution` whose `stats` hold `num_steps` (accepted steps) and
-    `num_rejected_steps`.
+    `num_rejected_steps`, and for a `Projection` its iteration counts.
     """
     if not _is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
@@ -476,6 +480,11 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, r
     # controller would reject every step until max_steps, and under vmap the whole
     # batch would wait for it.
     t_end = jnp.where(cannot_start, t0, t1)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol)
+    if isinstance(solver, Projection):
+        # Its steps end on the invariant set, the linear interpolation between them
+        # does not: every saved time is made a step end.
+        controller = diffrax.ClipStepSizeController(controller, step_ts=save_at)
 
     solution = diffrax.diffeqsolve(
         system,
@@ -485,16 +494,22 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, r
         dt0=None,
         y0=y_start,
         args=args,
-        saveat=diffrax.SaveAt(ts=jnp.where(cannot_start, t0, save_at), fn=_save_observables(system)),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        saveat=diffrax.SaveAt(
+            ts=jnp.where(cannot_start, t0, save_at), fn=_save_observables(system), solver_state=True
+        ),
+        stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
         throw=False,
     )
-    result = first_failure(initial_result, from_diffrax(solution.result))
     stats = dict(
         num_steps=solution.stats["num_accepted_steps"],
         num_rejected_steps=solution.stats["num_rejected_steps"],
     )
+    method_failure = RESULTS.successful
+    if isinstance(solution.solver_state, AbstractMethodState):
+        method_failure = solution.solver_state.failure
+        stats.update(solution.solver_state.statistics())
+    result = first_failure(initial_result, method_failure, from_diffrax(solution.result))
     ts = jnp.where(cannot_start, save_at, solution.ts)
     return _solution_from_saves(ts, solution.ys, result, stats, (y0, t0, t1, save_at, args))

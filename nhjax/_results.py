@@ -60,6 +60,14 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The Jacobian of a step's implicit equations was singular. Try a smaller dt. "
         "The saved states from the failed step on are not finite."
     )
+    projection_failed = (
+        "The projection of a step's end onto the energy level and the constraint "
+        "(nhjax.Projection) did not converge: the gradients of the invariants are "
+        "(nearly) linearly dependent there, e.g. at an equilibrium, where the gradient "
+        "of H vanishes, or the step left the invariant set too far to be brought back. "
+        "Try a smaller step or tolerance. The saved states from the failed step on are "
+        "not finite."
+    )
     nonfinite_step = (
         "A step produced a non-finite state, energy or constraint residual (NaN or "
         "inf), or the system's functions returned NaN or inf during a step: the "

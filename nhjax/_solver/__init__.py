@@ -12,6 +12,7 @@ from .discrete_gradient import (
 from .gonzalez_r import GonzalezR as GonzalezR
 from .gonzalez_f import GonzalezF as GonzalezF
 from .idla import IDLA as IDLA
+from .projection import Projection as Projection, ProjectionState as ProjectionState
 from .sidla import SIDLA as SIDLA
 from .spark import (
     LOBATTO_IIIA_B_2 as LOBATTO_IIIA_B_2,
