@@ -435,6 +435,11 @@ def _checked_steps(parser, arguments) -> int:
             "--order composes symmetric methods; tsit5 is an explicit Runge-Kutta method, not "
             "symmetric (and already of order 5)"
         )
+    if arguments.order != 2 and arguments.method == "dopri8-projection":
+        parser.error(
+            "--order composes symmetric methods; dopri8-projection is not symmetric (and already "
+            "of order 8)"
+        )
     if arguments.seed is not None and arguments.system not in ("gearbox", "quartic"):
         parser.error(f"--seed needs a system with random initial states (gearbox, quartic), not {arguments.system}")
     if arguments.seed is not None and arguments.seed < 0:

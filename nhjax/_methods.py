@@ -9,7 +9,7 @@ from typing import NamedTuple
 import diffrax
 
 from ._discrete_gradient import avf, gonzalez
-from ._solver import DiscreteGradient, GonzalezF, GonzalezR, IDLA, SIDLA, SPARK
+from ._solver import DiscreteGradient, GonzalezF, GonzalezR, IDLA, Projection, SIDLA, SPARK
 
 
 class Method(NamedTuple):
@@ -74,6 +74,12 @@ METHODS = {
         adapted=True, keeps_energy=True, keeps_constraint=True,
         description="DiscreteGradient(gonzalez) on the reduced equations in adapted coordinates: energy to "
         "roundoff, the constraint by construction",
+    ),
+    "dopri8-projection": Method(
+        "Dopri8 + projection", lambda: Projection(diffrax.Dopri8()),
+        adapted=False, keeps_energy=True, keeps_constraint=True,
+        description="Dopri8 at fixed steps on the index-1 ODE, each step's end projected onto the energy "
+        "level and the constraint: order 8, energy and constraint to roundoff, not symmetric",
     ),
     "tsit5": Method(
         "Tsit5", diffrax.Tsit5,

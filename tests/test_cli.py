@@ -147,6 +147,24 @@ def test_simulate_composes_to_higher_order(tmp_path):
     assert refused.returncode == 2 and "not symmetric" in refused.stderr
 
 
+def test_simulate_with_the_projected_dopri8(tmp_path, capsys):
+    """dopri8-projection on the disk: energy and constraint at roundoff, the final state
+    at Dopri8's accuracy; it does not compose."""
+    out = tmp_path / "disk.npz"
+    code = main(["simulate", "disk", "--method", "dopri8-projection", "--dt", "0.25", "--t1", "5",
+                 "--no-progress", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    disk = nh.examples.rolling_disk()
+    exact = disk.from_adapted(disk.exact_solution(5.0, disk.initial_state(rho1=1.3, rho2=0.9)))[0]
+    with np.load(out) as saved:
+        assert np.max(np.abs(saved["energy"] / saved["energy"][0] - 1)) < 1e-14
+        assert np.max(np.abs(saved["constraint"])) < 1e-14
+        assert np.max(np.abs(saved["q"][-1] - exact)) < 1e-8
+    with pytest.raises(SystemExit) as exit:
+        main(["simulate", "disk", "--method", "dopri8-projection", "--order", "4", "--dt", "0.25", "--t1", "5"])
+    assert exit.value.code == 2 and "not symmetric" in capsys.readouterr().err
+
+
 def test_unknown_system_or_method_lists_the_valid_ones():
     out = _run("simulate", "bicycle", "--method", "sidla", "--dt", "0.1", "--t1", "1")
     assert out.returncode != 0 and "invalid choice: 'bicycle'" in out.stderr
