@@ -7,6 +7,8 @@ state of key 0), to t = 10. Runs:
 - energy-exact: GONZALEZ-R and its compositions of order 4, 6 and 8 (`nhjax.Composition`)
   in canonical coordinates; on the quartic also DiscreteGradient(gonzalez) and its
   compositions on the reduced form (errors measured on (q, p) after mapping back);
+- energy-exact too: Dopri8 with adaptive steps, each step projected onto the energy level
+  and the constraint (`nhjax.Projection`), over a sweep of tolerances;
 - Tsit5 at fixed steps, and Dopri8 with adaptive steps (`nhjax.integrate_adaptive`'s
   solver) over a sweep of tolerances.
 
@@ -17,7 +19,9 @@ warm-up. Error: max-norm distance at t = 10 to a reference, Dopri8 at rtol = ato
 
 For each target error (1e-3, 1e-6, 1e-8, 1e-9, 1e-10): the cheapest run overall, the
 cheapest energy-exact run and the cheapest Dopri8 run that reach it, and the ratio of
-the energy-exact time to Dopri8's. Also each scheme's error constant C in
+the energy-exact time to Dopri8's; for each energy-exact method, the largest relative
+energy error and constraint residual at t = 10 over its runs. Also each scheme's error
+constant C in
 err = C h^p, measured on the quartic's reduced form, for every scheme of
 `nhjax.COMPOSITION_SCHEMES`.
 
@@ -52,6 +56,7 @@ STEP_COUNTS = {
     8: (10, 16, 20, 25, 32, 40, 50, 64, 80, 100, 125),
 }
 TSIT5_STEPS = (50, 100, 200, 400, 800, 1600, 3200)
+PROJECTED = "Dopri8 + projection (adaptive)"
 
 
 def _problems():
@@ -65,12 +70,19 @@ def _problems():
     }
 
 
-def _error(y, reference) -> float:
-    return max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(y, reference))
+def _errors(y, reference, invariants) -> dict:
+    """The max-norm error of the final (q, p); with `invariants = (canonical system,
+    initial energy)`, also its relative energy error and constraint residual."""
+    errors = dict(error=max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(y, reference)))
+    if invariants is not None:
+        canonical, energy = invariants
+        errors.update(energy_error=abs(float(canonical.energy(y, None)) / energy - 1),
+                      constraint_error=float(jnp.max(jnp.abs(canonical.constraint_residual(y, None)))))
+    return errors
 
 
-def _sweep(system, method, y0, counts, reference, to_canonical, repeats):
-    """(steps, h, wall time s, error) for each step count, one compilation."""
+def _sweep(system, method, y0, counts, reference, to_canonical, repeats, invariants=None):
+    """(steps, h, wall time s, errors) for each step count, one compilation."""
     rows = []
     for n in counts:
         h = jnp.asarray(T1 / n)
@@ -83,7 +95,8 @@ def _sweep(system, method, y0, counts, reference, to_canonical, repeats):
             rows.append(dict(steps=n, failed=True))
             continue
         seconds = median_time(function, repeats)
-        rows.append(dict(steps=n, h=T1 / n, wall_time_s=seconds, error=_error(to_canonical(final), reference), failed=False))
+        rows.append(dict(steps=n, h=T1 / n, wall_time_s=seconds, failed=False,
+                         **_errors(to_canonical(final), reference, invariants)))
     return rows
 
 
@@ -91,18 +104,18 @@ def _identity(y):
     return y
 
 
-def _dopri8(system, y0, reference, repeats):
+def _dopri8(system, y0, reference, repeats, invariants, solver=diffrax.Dopri8()):
     rows = []
     for tolerance in TOLERANCES:
         def function(tolerance=tolerance):
-            return run_adaptive(system, y0, jnp.asarray(T1), jnp.asarray(tolerance))
+            return run_adaptive(system, y0, jnp.asarray(T1), jnp.asarray(tolerance), solver)
 
         final, succeeded, steps = function()
         if not bool(succeeded):
             rows.append(dict(tolerance=tolerance, failed=True))
             continue
         rows.append(dict(tolerance=tolerance, steps=int(steps), wall_time_s=median_time(function, repeats),
-                         error=_error(final, reference), failed=False))
+                         failed=False, **_errors(final, reference, invariants)))
     return rows
 
 
@@ -130,6 +143,7 @@ def work_precision(repeats: int, quick: bool = False) -> dict:
         system, y0 = problem["system"], problem["y0"]
         reference_run = nh.integrate_adaptive(system, y0, T1, rtol=1e-15, atol=1e-15, max_steps=10_000_000)
         reference = jax.tree.map(lambda leaf: leaf[-1], reference_run.ys)
+        invariants = (system, float(system.energy(y0, None)))
         runs = {}
         exact = []
         candidates = [("GONZALEZ-R", nh.GonzalezR(), system, y0, _identity)]
@@ -140,19 +154,32 @@ def work_precision(repeats: int, quick: bool = False) -> dict:
             for order in (2, 4, 6, 8):
                 method = base if order == 2 else nh.Composition(base, order)
                 name = base_name if order == 2 else f"{base_name}, order {order}"
-                runs[name] = _sweep(run_system, method, start, thin(STEP_COUNTS[order]), reference, to_canonical, repeats)
+                runs[name] = _sweep(run_system, method, start, thin(STEP_COUNTS[order]), reference, to_canonical, repeats,
+                                    invariants)
                 exact.append(name)
                 print(f"{problem_name:10s} {name:34s} " + "  ".join(
                     f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
                     for row in runs[name] if not row["failed"]), flush=True)
-        runs["Tsit5 (fixed steps)"] = _sweep(system, diffrax.Tsit5(), y0, thin(TSIT5_STEPS), reference, _identity, repeats)
-        runs["Dopri8 (adaptive)"] = _dopri8(system, y0, reference, repeats)
-        print(f"{problem_name:10s} Dopri8 " + "  ".join(
-            f"tol={row['tolerance']:.0e}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
-            for row in runs["Dopri8 (adaptive)"] if not row["failed"]), flush=True)
+        runs["Tsit5 (fixed steps)"] = _sweep(system, diffrax.Tsit5(), y0, thin(TSIT5_STEPS), reference, _identity, repeats,
+                                              invariants)
+        runs["Dopri8 (adaptive)"] = _dopri8(system, y0, reference, repeats, invariants)
+        runs[PROJECTED] = _dopri8(system, y0, reference, repeats, invariants, nh.Projection(diffrax.Dopri8()))
+        exact.append(PROJECTED)
+        for name in ("Dopri8 (adaptive)", PROJECTED):
+            print(f"{problem_name:10s} {name} " + "  ".join(
+                f"tol={row['tolerance']:.0e}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
+                for row in runs[name] if not row["failed"]), flush=True)
         most_accurate = runs["GONZALEZ-R, order 8"][-1]
+        invariant_errors = {
+            name: dict(energy=max(row["energy_error"] for row in runs[name] if not row["failed"]),
+                       constraint=max(row["constraint_error"] for row in runs[name] if not row["failed"]))
+            for name in exact
+        }
+        for name, worst in invariant_errors.items():
+            print(f"{problem_name:10s} {name:34s} largest energy error {worst['energy']:.1e}, "
+                  f"constraint {worst['constraint']:.1e}", flush=True)
         results["problems"][problem_name] = dict(
-            runs=runs, summary=_summary(problem_name, runs, exact),
+            runs=runs, summary=_summary(problem_name, runs, exact), energy_exact_invariant_errors=invariant_errors,
             reference_check=dict(
                 note="distance of the reference (Dopri8 at 1e-15) to GONZALEZ-R order 8 at its smallest step",
                 distance=most_accurate.get("error"),
