@@ -119,7 +119,9 @@ class Projection(diffrax.AbstractWrappedSolver):
     every saved time a step end. A solver that carries the field at the step's end into
     the next step (first same as last: `diffrax.Tsit5`, `diffrax.Dopri5`) is
     re-initialised at $y_1$, one field evaluation per step more. Derivatives of $\mu$
-    come from the implicit function theorem (`nhjax._solver.base._implicit_root`).
+    come from the implicit function theorem (`nhjax._solver.base._implicit_root`). A
+    run continued from a saved state (the chunks of `nhjax.run_chunked`) projects onto
+    the energy of the state it continues from, the first one's to roundoff.
 
     **Failures.** Where the gradients of the invariants are linearly dependent, e.g. at
     an equilibrium ($\nabla H = 0$), $GG^T$ is singular: a step that ends on the
