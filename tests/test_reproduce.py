@@ -124,7 +124,9 @@ def test_work_precision(reproduction):
     step size, Dopri8's error falling with its tolerance."""
     _, results = reproduction
     methods = results["fig4"]["methods"]
-    assert set(methods) == {"SI-DLA", "GONZALEZ", "GONZALEZ order 4", "Dopri8 (adaptive)"}
+    assert set(methods) == {
+        "SI-DLA", "GONZALEZ", "GONZALEZ order 4", "Dopri8 (adaptive)", "Dopri8 + projection (adaptive)"
+    }
     for entry in methods.values():
         assert len(entry["wall_time_s"]) == len(entry["settings"]) and not entry["failed"]
         assert all(seconds > 0 for seconds in entry["wall_time_s"])
@@ -133,6 +135,9 @@ def test_work_precision(reproduction):
     assert min(methods["SI-DLA"]["energy_error"]) > 1e-6
     dopri8 = methods["Dopri8 (adaptive)"]["solution_error"]
     assert dopri8[1] < 1e-2 * dopri8[0]  # tolerances 1e-6 and 1e-9
+    projected = methods["Dopri8 + projection (adaptive)"]
+    assert max(projected["energy_error"]) < 1e-14
+    assert projected["solution_error"][1] < 1e-2 * projected["solution_error"][0]
     composed = methods["GONZALEZ order 4"]
     assert max(composed["energy_error"]) < 1e-13
     assert 3.7 <= composed["fitted_order"] <= 4.6
@@ -145,7 +150,7 @@ def test_work_precision_names_the_cheapest_runs(reproduction):
     methods = results["fig4"]["methods"]
     cheapest = results["fig4"]["cheapest_at_solution_error"]
     assert list(cheapest) == ["0.001", "1e-06", "1e-09"]
-    exact = ("GONZALEZ", "GONZALEZ order 4")
+    exact = ("GONZALEZ", "GONZALEZ order 4", "Dopri8 + projection (adaptive)")
     for target, row in cheapest.items():
         runs = [(seconds, name) for name, entry in methods.items()
                 for seconds, error in zip(entry["wall_time_s"], entry["solution_error"]) if error <= float(target)]

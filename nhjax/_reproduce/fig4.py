@@ -5,14 +5,18 @@ Every method at a few step sizes: the canonical methods (GONZALEZ-R, GONZALEZ-F,
 I-DLA, SPARK, and Tsit5 at fixed steps on the index-1 ODE), DiscreteGradient with AVF and
 Gonzalez on the adapted form, the compositions of order 4, 6 and 8 of GONZALEZ-R and of
 Gonzalez on the adapted form (`nhjax.Composition`), and Dopri8 with adaptive steps over a
-range of tolerances. Wall time is the median of a few runs after compilation; precision
+range of tolerances, plain and with each step projected onto the energy level and the
+constraint (`nhjax.Projection`, energy-exact). Wall time is the median of a few runs after compilation; precision
 is the final relative energy error and the error at t = 10 against
 `nhjax.integrate_adaptive` at rtol = atol = 1e-13. At each of a few target errors the
 report names the cheapest run overall and the cheapest energy-exact run.
 """
 
+import diffrax
 import jax.numpy as jnp
 from tqdm.auto import tqdm
+
+import nhjax as nh
 
 from ._common import (
     check,
@@ -38,6 +42,8 @@ from ._common import (
 
 FINAL_TIME = 10.0
 ADAPTIVE = "Dopri8 (adaptive)"
+PROJECTED = "Dopri8 + projection (adaptive)"
+_SOLVERS = {ADAPTIVE: diffrax.Dopri8(), PROJECTED: nh.Projection(diffrax.Dopri8())}
 # Below this the reference (Dopri8 at 1e-13) and rounding blur the error: the orders of
 # the compositions are fitted above it.
 ERROR_FLOOR = 1e-11
@@ -50,7 +56,7 @@ def _measure(function, repeats: int, quartic: Quartic, name: str, setting: float
     final, succeeded, steps = function()
     if not bool(succeeded):
         return None
-    if name != ADAPTIVE:
+    if name not in _SOLVERS:
         check_run(name, setting, FINAL_TIME, succeeded, steps)
     seconds = median_time(function, repeats)
     canonical = quartic.canonical(name, final) if name in METHODS else final
@@ -68,14 +74,16 @@ def measure(context: Context, quartic: Quartic, sample) -> dict:
     energy0 = float(quartic.energy(quartic.example.from_adapted(sample)))
     runs = [(name, h) for name in sizes.work_methods for h in sizes.work_step_sizes]
     runs += [(name, h) for name in sizes.work_compositions for h in sizes.work_composition_step_sizes]
-    runs += [(ADAPTIVE, tolerance) for tolerance in sizes.work_tolerances]
+    runs += [(name, tolerance) for name in _SOLVERS for tolerance in sizes.work_tolerances]
     results = {}
     for name, setting in tqdm(runs, desc="Figure 4: timed runs to t = 10", disable=not context.progress):
-        if name == ADAPTIVE:
+        if name in _SOLVERS:
             y0 = quartic.example.from_adapted(sample)
 
-            def function(y0=y0, tolerance=setting):
-                return run_adaptive(quartic.example.canonical, y0, jnp.asarray(FINAL_TIME), jnp.asarray(tolerance))
+            def function(y0=y0, tolerance=setting, solver=_SOLVERS[name]):
+                return run_adaptive(
+                    quartic.example.canonical, y0, jnp.asarray(FINAL_TIME), jnp.asarray(tolerance), solver
+                )
         else:
             y0 = quartic.start(name, sample)
 
@@ -94,7 +102,7 @@ def measure(context: Context, quartic: Quartic, sample) -> dict:
     for name, entry in results.items():
         if name in COMPOSITIONS:
             entry["fitted_order"] = _asymptotic_order(entry)
-        elif name != ADAPTIVE:
+        elif name not in _SOLVERS:
             entry["fitted_order"] = (
                 fitted_order(entry["settings"], entry["solution_error"]) if len(entry["settings"]) >= 2 else None
             )
@@ -129,7 +137,7 @@ def cheapest_at(results, targets) -> dict:
     table = {}
     for target in targets:
         overall = cheapest(list(results), target)
-        exact = cheapest([name for name in results if name in ENERGY_EXACT_METHODS], target)
+        exact = cheapest([name for name in results if name in ENERGY_EXACT_METHODS or name == PROJECTED], target)
         ratio = exact["wall_time_s"] / overall["wall_time_s"] if overall and exact else None
         table[f"{target:g}"] = dict(overall=overall, energy_exact=exact, energy_exact_over_overall=ratio)
     return table
@@ -139,8 +147,8 @@ def plot(path, results) -> str:
     figure, axes = new_figure(2)
     energy_axes, solution_axes = axes[0]
     for name, entry in results.items():
-        colour = METHODS[name].colour if name in METHODS else "k"
-        style = dict(color=colour, marker="s" if name == ADAPTIVE else "o", ms=4, lw=1.0, label=name)
+        colour = METHODS[name].colour if name in METHODS else {PROJECTED: "olive"}.get(name, "k")
+        style = dict(color=colour, marker="s" if name in _SOLVERS else "o", ms=4, lw=1.0, label=name)
         energy_axes.loglog(entry["wall_time_s"], positive(entry["energy_error"]), **style)
         solution_axes.loglog(entry["wall_time_s"], entry["solution_error"], **style)
     energy_axes.set(xlabel="wall time (s)", ylabel=r"$|H(10)/H(0) - 1|$",
@@ -191,6 +199,12 @@ def run(context: Context) -> dict:
     if "Tsit5" in results:
         order = results["Tsit5"]["fitted_order"]
         checks.append(check(order is not None and order > 4, f"Tsit5 order {order or float('nan'):.1f}", "> 4"))
+    if PROJECTED in results:
+        entry = results[PROJECTED]
+        bound_projected = roundoff(max(entry["steps"], default=1))
+        worst = max(entry["energy_error"], default=0.0)
+        checks.append(check(worst <= bound_projected, f"energy error of {PROJECTED} <= {worst:.0e} at every tolerance",
+                            f"<= 100 eps sqrt(steps) = {bound_projected:.0e} (roundoff)"))
     errors = results.get(ADAPTIVE, {}).get("solution_error", [])
     if len(errors) >= 2:
         checks.append(check(errors[-1] < errors[0], f"Dopri8 error {errors[0]:.0e} -> {errors[-1]:.0e} as the tolerance tightens",
