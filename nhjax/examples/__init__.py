@@ -5,6 +5,7 @@ helpers."""
 
 from .._adapted import discrete_constraint_residual as discrete_constraint_residual
 from ._chaotic_quartic import chaotic_quartic as chaotic_quartic, ChaoticQuartic as ChaoticQuartic
+from ._contact_oscillator import contact_oscillator as contact_oscillator, ContactOscillator as ContactOscillator
 from ._chaplygin_sleigh import chaplygin_sleigh as chaplygin_sleigh, ChaplyginSleigh as ChaplyginSleigh
 from ._rolling_disk import rolling_disk as rolling_disk, RollingDisk as RollingDisk
 from ._suslov import suslov as suslov, Suslov as Suslov
