@@ -72,7 +72,7 @@ _USER_SYSTEM = {
     "MODULE:FACTORY": "your own system (also --system MODULE:FACTORY): FACTORY() in MODULE returns "
     "(system, (q0, p0), args), the system a nhjax.NonholonomicSystem",
 }
-FIGURES = ("fig1", "fig2", "fig3", "fig4")
+FIGURES = ("fig1", "fig2", "fig3", "fig4", "fig5")
 _DEFAULT_ANGLE = 0.7
 
 
@@ -323,7 +323,8 @@ def main(argv=None) -> int:
         "reproduce",
         help="rerun the paper's experiments and write figures, results.json and report.md",
         description="Rerun the experiments behind the paper's figures (and a work-precision "
-        "comparison, fig4), write the figures as PNG, the numbers in results.json and a "
+        "comparison, fig4, and the contact oscillator in a reversible and a non-reversible form, "
+        "fig5), write the figures as PNG, the numbers in results.json and a "
         "report.md that says, experiment by experiment, whether the paper's claims hold. "
         "Long runs resume from their chunks in DIR if interrupted.",
     )

@@ -210,8 +210,8 @@ def test_reproduce_passes_its_options_on(monkeypatch, tmp_path, capsys):
         (FIGURES, False, pathlib.Path("nhjax-reproduction"), True),
     ]
     with pytest.raises(SystemExit) as exit:
-        main(["reproduce", "fig5"])
-    assert exit.value.code != 0 and "invalid choice: 'fig5'" in capsys.readouterr().err
+        main(["reproduce", "fig6"])
+    assert exit.value.code != 0 and "invalid choice: 'fig6'" in capsys.readouterr().err
 
 
 def test_reproduce_help_names_its_options():

@@ -22,6 +22,8 @@ class Sizes:
     - `work_compositions`, `work_composition_step_sizes`: Figure 4's compositions of
         order 4, 6 and 8 (see `_common.COMPOSITIONS`) and their step sizes.
     - `work_targets`: the solution errors at which Figure 4 names the cheapest runs.
+    - `contact_steps`, `contact_save_every`: Figure 5's steps of h = 0.1 on the contact
+        oscillator, and the saving interval.
     """
 
     seed: int
@@ -43,6 +45,8 @@ class Sizes:
     work_compositions: tuple[str, ...]
     work_composition_step_sizes: tuple[float, ...]
     work_targets: tuple[float, ...]
+    contact_steps: int
+    contact_save_every: int
 
 
 FULL = Sizes(
@@ -71,6 +75,9 @@ FULL = Sizes(
     ),
     work_composition_step_sizes=(0.5, 0.25, 0.2, 0.125, 0.1, 0.0625, 0.05, 0.025),
     work_targets=(1e-3, 1e-6, 1e-9),
+    # Figure 5: t in [0, 10000].
+    contact_steps=100_000,
+    contact_save_every=100,
 )
 
 # Compilation, not stepping, is most of a quick run: the same programs as FULL, shorter
@@ -86,4 +93,5 @@ QUICK = dataclasses.replace(
     gearbox_steps=50_000,
     gearbox_chunk_steps=10_000,
     work_repeats=3,
+    contact_steps=20_000,
 )
