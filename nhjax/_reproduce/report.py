@@ -54,7 +54,8 @@ _NOTES = {
     "fig4": (
         "`settings` are the step sizes (Dopri8: the tolerances rtol = atol). Wall times are medians "
         "after compilation, of one trajectory to t = 10 on this machine. Energy-exact runs: the "
-        "discrete-gradient methods and their compositions. The ratio is the energy-exact run's time "
+        "discrete-gradient methods, their compositions, and Dopri8 with each step projected onto "
+        "the energy level and the constraint. The ratio is the energy-exact run's time "
         "over the cheapest run's."
     ),
     "fig5": (
