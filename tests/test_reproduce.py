@@ -179,6 +179,8 @@ def test_contact_oscillator_reversibility(reproduction):
         assert shifted["max_y_energy_error"] > 10 * reversible["max_y_energy_error"]
         assert reversible["y_energy_error_growth"] < 1.5 < shifted["y_energy_error_growth"]
     assert methods["SI-DLA, canonical form"]["max_relative_energy_error"] > 1e-6
+    projected = methods["Dopri8 + projection, reversible form"]
+    assert projected["max_relative_energy_error"] < 1e-14 and projected["y_energy_error_growth"] > 2
 
 
 def test_an_interrupted_reproduction_resumes_to_the_same_numbers(reproduction, tmp_path):

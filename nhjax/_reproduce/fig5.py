@@ -9,15 +9,18 @@ their values; on a problem that is integrable but not reversible, they observe t
 this is lost. Here the same motion is integrated in two sets of coordinates: the
 reversible adapted form, and the gauge-shifted one, in which the standard reversibility
 map no longer reverses the flow (`nhjax.examples.ContactOscillator`). GONZALEZ and AVF run on
-both; SI-DLA and GONZALEZ-R on the canonical (reversible) form, the only one they take.
+both; GONZALEZ-R, GONZALEZ-F, SI-DLA, I-DLA and SPARK on the canonical (reversible) form, the
+only one they take; and Dopri8 with each step projected onto the energy level and the
+constraint (`nhjax.Projection`), energy-exact but not reversible, on the reversible form.
 Measured: the relative energy error, and the error of the second first integral
 $H_y = \tfrac12(y^2 + \dot y^2)$, saved every `contact_save_every` steps. The checks
 are the two forms' exact flows agreeing (the example is right), the discrete-gradient
 runs' energy at roundoff in both forms, $H_y$'s error staying bounded on the reversible
 form (its mean over the second half of the run within 1.5 times that over the first;
-a linear drift from zero gives 3), and the reversible form's advantage on the
+a linear drift from zero gives 3; runs whose $H_y$ error stays at roundoff, I-DLA's, aside), the reversible form's advantage on the
 gauge-shifted one (GONZALEZ's and AVF's largest $H_y$ error there at least 10 times
-larger).
+larger), and the projected Dopri8 drifting even on the reversible form (growth at least
+2): energy exactness alone does not keep $H_y$.
 """
 
 import jax.numpy as jnp
@@ -35,9 +38,16 @@ RUNS = (
     ("GONZALEZ, gauge-shifted form", "GONZALEZ", "gauge-shifted"),
     ("AVF, reversible form", "AVF", "adapted"),
     ("AVF, gauge-shifted form", "AVF", "gauge-shifted"),
-    ("SI-DLA, canonical form", "SI-DLA", "canonical"),
     ("GONZALEZ-R, canonical form", "GONZALEZ-R", "canonical"),
+    ("GONZALEZ-F, canonical form", "GONZALEZ-F", "canonical"),
+    ("SI-DLA, canonical form", "SI-DLA", "canonical"),
+    ("I-DLA, canonical form", "I-DLA", "canonical"),
+    ("SPARK, canonical form", "SPARK", "canonical"),
+    ("Dopri8 + projection, reversible form", "Dopri8 + projection", "adapted"),
 )
+# Energy-exact and reversible, energy-exact only, reversible only: by method name.
+ENERGY_EXACT = ("GONZALEZ", "AVF", "GONZALEZ-R", "GONZALEZ-F", "Dopri8 + projection")
+NOT_REVERSIBLE = ("Dopri8 + projection",)
 _STYLES = {"adapted": "-", "gauge-shifted": "--", "canonical": ":"}
 
 
@@ -102,10 +112,14 @@ def run(context: Context) -> dict:
             y_energy_error_growth=float(run["y_energy_error"][half:].mean() / run["y_energy_error"][1 : half + 1].mean()),
         )
     conjugacy = _conjugacy_error(oscillator, adapted0)
-    discrete_gradient = [label for label, name, _ in RUNS if name in ("GONZALEZ", "AVF", "GONZALEZ-R")]
-    reversible = [label for label, _, form in RUNS if form != "gauge-shifted"]
-    worst_energy = max(methods[label]["max_relative_energy_error"] for label in discrete_gradient)
+    energy_exact = [label for label, name, _ in RUNS if name in ENERGY_EXACT]
+    # I-DLA keeps H_y to roundoff (the midpoint rule keeps the quadratic invariant of the
+    # decoupled y oscillator): its rounding, not a growth, is what a ratio would measure.
+    reversible = [label for label, name, form in RUNS
+                  if form != "gauge-shifted" and name not in NOT_REVERSIBLE and methods[label]["max_y_energy_error"] > bound]
+    worst_energy = max(methods[label]["max_relative_energy_error"] for label in energy_exact)
     worst_growth = max(methods[label]["y_energy_error_growth"] for label in reversible)
+    projected_growth = methods["Dopri8 + projection, reversible form"]["y_energy_error_growth"]
     advantage = {
         name: methods[f"{name}, gauge-shifted form"]["max_y_energy_error"] / methods[f"{name}, reversible form"]["max_y_energy_error"]
         for name in ("GONZALEZ", "AVF")
@@ -114,14 +128,17 @@ def run(context: Context) -> dict:
         check(conjugacy <= 1e-9, f"the two forms' exact flows agree to {conjugacy:.0e} at t = 10",
               "<= 1e-9 (Dopri8 at 1e-13 in each)"),
         check(worst_energy <= bound,
-              f"energy error of the discrete-gradient runs, both forms, <= {worst_energy:.0e}",
+              f"energy error of the energy-exact runs ({', '.join(ENERGY_EXACT)}), every form, <= {worst_energy:.0e}",
               f"<= 100 eps sqrt(N) = {bound:.0e} (roundoff)"),
-        check(worst_growth <= 1.5, f"mean H_y error on the reversible form grows by at most {worst_growth:.2f}x from "
-              "the first half of the run to the second", "<= 1.5 (bounded, as reversible KAM theory gives)"),
+        check(worst_growth <= 1.5, f"mean H_y error of the reversible methods on the reversible forms grows by at "
+              f"most {worst_growth:.2f}x from the first half of the run to the second",
+              "<= 1.5 (bounded, as reversible KAM theory gives)"),
         check(min(advantage.values()) >= 10,
               "H_y error on the gauge-shifted form over the reversible form's: "
               + ", ".join(f"{name} {ratio:.0f}x" for name, ratio in advantage.items()),
               ">= 10 for both (reversibility lost, as Modin & Verdier observe)"),
+        check(projected_growth >= 2, f"mean H_y error of the projected Dopri8 (energy exact, not reversible) on the "
+              f"reversible form grows {projected_growth:.2f}x", ">= 2 (a drift: energy exactness alone does not keep H_y)"),
     ]
     judged = verdict(checks)
     if judged["agrees"]:

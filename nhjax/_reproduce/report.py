@@ -60,7 +60,7 @@ _NOTES = {
     ),
     "fig5": (
         "The same motion in two coordinate systems: the reversible adapted form and the gauge-shifted "
-        "one (nhjax.examples.contact_oscillator), and the canonical form for SI-DLA and GONZALEZ-R. "
+        "one (nhjax.examples.contact_oscillator), and the canonical form for the methods that take only it. "
         "H_y = (y^2 + ydot^2)/2 is a first integral of the exact flow; its error growth is the error's "
         "mean over the second half of the run over its mean over the first (1 bounded, 3 a linear drift)."
     ),
