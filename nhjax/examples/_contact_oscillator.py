@@ -28,6 +28,40 @@ def _shift(q, gauge):
     return jnp.stack([jnp.zeros_like(q[2]), gauge * jnp.sin(q[2])])
 
 
+class _CanonicalHamiltonian(eqx.Module):
+    """$H(q, p)$ for a coupling fixed at construction: a module, not a closure, so that
+    two systems built alike are equal and share one compilation."""
+
+    epsilon: float = eqx.field(static=True)
+
+    def __call__(self, q, p, args):
+        return 0.5 * p @ p + _potential(q, self.epsilon)
+
+
+class _AdaptedHamiltonian(eqx.Module):
+    r"""$\mathcal H$ in adapted coordinates, or, with a `gauge`, $\tilde{\mathcal H}$ in
+    gauge-shifted ones."""
+
+    epsilon: float = eqx.field(static=True)
+    gauge: float | None = eqx.field(static=True, default=None)
+
+    def __call__(self, state, args):
+        if self.gauge is not None:
+            state = _unshifted(state, self.gauge)
+        return _adapted_hamiltonian(state, self.epsilon)
+
+
+class _ShiftedStructure(eqx.Module):
+    r"""$\tilde\Pi = D\varphi\,\Pi\,D\varphi^T$ at $\varphi^{-1}(\tilde\zeta)$."""
+
+    gauge: float = eqx.field(static=True)
+
+    def __call__(self, state, args):
+        original = _unshifted(state, self.gauge)
+        jacobian = jax.jacfwd(lambda s: _shifted(s, self.gauge))(original)
+        return jacobian @ _structure(original, args) @ jacobian.T
+
+
 def _unshifted(state, gauge):
     q, rho_tilde = state[:3], state[3:]
     return jnp.concatenate([q, rho_tilde + _shift(q, gauge)])
@@ -86,32 +120,20 @@ class ContactOscillator(eqx.Module):
     @property
     def canonical(self) -> NonholonomicSystem:
         r"""$H = \tfrac12|p|^2 + V(q)$ with $\dot x + y\dot z = 0$."""
-        epsilon = self.epsilon
-        return NonholonomicSystem(lambda q, p, args: 0.5 * p @ p + _potential(q, epsilon), _constraints)
+        return NonholonomicSystem(_CanonicalHamiltonian(self.epsilon), _constraints)
 
     @property
     def adapted(self) -> SkewGradientSystem:
         r"""The reduced equations in $\zeta = (q, \rho)$, $\rho = X^Tp$:
         $\mathcal H = \tfrac12(\rho_1^2 + \rho_2^2/(1 + y^2)) + V$ and the structure (fcseq)."""
-        epsilon = self.epsilon
-        return SkewGradientSystem(lambda state, args: _adapted_hamiltonian(state, epsilon), _structure)
+        return SkewGradientSystem(_AdaptedHamiltonian(self.epsilon), _structure)
 
     @property
     def gauge_shifted(self) -> SkewGradientSystem:
         r"""The same motion in $\tilde\zeta = (q, \tilde\rho)$,
         $\tilde\rho = \rho - X^T\nabla S$ (see `ContactOscillator`): not reversible under
         $\tilde\rho \mapsto -\tilde\rho$."""
-        epsilon, gauge = self.epsilon, self.gauge
-
-        def hamiltonian(state, args):
-            return _adapted_hamiltonian(_unshifted(state, gauge), epsilon)
-
-        def structure(state, args):
-            original = _unshifted(state, gauge)
-            jacobian = jax.jacfwd(lambda s: _shifted(s, gauge))(original)
-            return jacobian @ _structure(original, args) @ jacobian.T
-
-        return SkewGradientSystem(hamiltonian, structure)
+        return SkewGradientSystem(_AdaptedHamiltonian(self.epsilon, self.gauge), _ShiftedStructure(self.gauge))
 
     def to_adapted(self, q, p) -> Float[Array, "5"]:
         return jnp.concatenate([q, momentum_to_adapted(_frame(q), p)])

@@ -69,3 +69,30 @@ def test_the_standard_reversibility_map_reverses_the_adapted_form_only():
         # The Hamiltonian is R-invariant exactly when the form is reversible.
         moved = abs(float(system.energy(_reversed(there), None) - system.energy(there, None)))
         assert (moved < 1e-14) if reversible else (moved > 1e-2), moved
+
+
+def test_systems_built_alike_share_one_compilation(monkeypatch):
+    """Each access of `.canonical` or `.gauge_shifted` builds a new system; equal
+    parameters give equal systems, so a second run compiles nothing: it traces the
+    potential once, for `nhjax.integrate`'s shape check outside the compiled program."""
+    import nhjax.examples._contact_oscillator as module
+
+    traces = []
+    potential = module._potential
+
+    def counted(q, epsilon):
+        traces.append(None)
+        return potential(q, epsilon)
+
+    monkeypatch.setattr(module, "_potential", counted)
+    (q0, p0), adapted0 = _start()
+    for build, method, start in (
+        (lambda: nh.examples.contact_oscillator().canonical, nh.SIDLA(), (q0, p0)),
+        (lambda: nh.examples.contact_oscillator().gauge_shifted, nh.DiscreteGradient(),
+         OSCILLATOR.to_gauge_shifted(adapted0)),
+    ):
+        assert build() == build()
+        nh.integrate(build(), method, start, 0.1, 5)
+        count = len(traces)
+        nh.integrate(build(), method, start, 0.1, 5)
+        assert len(traces) == count + 1
