@@ -23,6 +23,14 @@ from .._system import AbstractSystem
 from .chord import PresetChord
 
 
+def unwrapped_system(terms) -> AbstractSystem:
+    """The user's system inside the wrappers diffrax puts around a term."""
+    system = terms
+    while not isinstance(system, AbstractSystem):
+        system = system.term
+    return system
+
+
 def no_gradient(tree: PyTree) -> PyTree:
     """`tree` with its arrays cut from differentiation (`lax.stop_gradient`), its other
     leaves kept."""
@@ -187,12 +195,10 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     @staticmethod
     def system_and_step(terms, t0, t1):
-        """The user's system inside diffrax's wrappers, and the signed step size (diffrax
-        integrates backward in time by negating times inside a wrapper)."""
-        system = terms
-        while not isinstance(system, AbstractSystem):
-            system = system.term
-        return system, terms.contr(t0, t1)
+        """The user's system inside diffrax's wrappers (`unwrapped_system`), and the
+        signed step size (diffrax integrates backward in time by negating times inside a
+        wrapper)."""
+        return unwrapped_system(terms), terms.contr(t0, t1)
 
     def _root_finder(self, dtype) -> optx.AbstractRootFinder:
         return default_root_finder(dtype) if self.root_finder is None else self.root_finder

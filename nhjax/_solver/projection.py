@@ -24,6 +24,7 @@ from .base import (
     default_root_finder,
     no_gradient,
     step_return,
+    unwrapped_system,
 )
 from .chord import PresetChord
 
@@ -182,7 +183,7 @@ class Projection(diffrax.AbstractWrappedSolver):
         return self.solver.func(terms, t0, y0, args)
 
     def init(self, terms, t0, t1, y0, args) -> ProjectionState:
-        system = _system(terms)
+        system = unwrapped_system(terms)
         zero = jnp.array(0, dtype=jnp.int32)
         return ProjectionState(
             inner=self.solver.init(terms, t0, t1, y0, args),
@@ -196,7 +197,7 @@ class Projection(diffrax.AbstractWrappedSolver):
         y_tilde, y_error, _, inner, inner_result = self.solver.step(
             terms, t0, t1, y0, args, solver_state.inner, made_jump
         )
-        system = _system(terms)
+        system = unwrapped_system(terms)
         y1, steps, projection_result = self.project(system, y_tilde, args, solver_state.energy)
         failure = first_failure(
             RESULTS.where(inner_result == diffrax.RESULTS.successful, RESULTS.successful, RESULTS.nonfinite_step),
@@ -255,10 +256,3 @@ class Projection(diffrax.AbstractWrappedSolver):
             RESULTS.where(converged, RESULTS.successful, RESULTS.projection_failed),
         )
         return y1, solution.stats["num_steps"], result
-
-
-def _system(terms) -> AbstractSystem:
-    """The user's system inside diffrax's wrappers."""
-    while not isinstance(terms, AbstractSystem):
-        terms = terms.term
-    return terms
