@@ -341,6 +341,14 @@ def _describe_failure(solution: Solution, dt, t0, n_steps) -> str:
     )
 
 
+def _method_outcome(solver_state) -> tuple[RESULTS, dict[str, Array]]:
+    """The nhjax code and root-finder statistics in a run's final solver state; success
+    and none for a diffrax solver, which reports through `solution.result` alone."""
+    if isinstance(solver_state, AbstractMethodState):
+        return solver_state.failure, solver_state.statistics()
+    return RESULTS.successful, {}
+
+
 @eqx.filter_jit
 def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n_steps, save_every, progress):
     state_result = system.initial_state_result(y0, args)
@@ -379,14 +387,9 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
         throw=False,
         progress_meter=meter,
     )
-    method_state = solution.solver_state
+    method_failure, statistics = _method_outcome(solution.solver_state)
     stats = dict(num_steps=solution.stats["num_accepted_steps"])
-    if isinstance(method_state, AbstractMethodState):
-        method_failure = method_state.failure
-        stats.update(method_state.statistics())
-    else:  # a diffrax solver, which reports through `solution.result` alone
-        method_failure = RESULTS.successful
-        stats.update(root_find_steps=None, max_root_find_steps=None)
+    stats.update(statistics or dict(root_find_steps=None, max_root_find_steps=None))
     result = first_failure(initial_result, method_failure, from_diffrax(solution.result))
     return _solution_from_saves(solution.ts, solution.ys, result, stats, (y0, dt, t0, args))
 
@@ -502,14 +505,12 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, r
         adjoint=adjoint,
         throw=False,
     )
+    method_failure, statistics = _method_outcome(solution.solver_state)
     stats = dict(
         num_steps=solution.stats["num_accepted_steps"],
         num_rejected_steps=solution.stats["num_rejected_steps"],
+        **statistics,
     )
-    method_failure = RESULTS.successful
-    if isinstance(solution.solver_state, AbstractMethodState):
-        method_failure = solution.solver_state.failure
-        stats.update(solution.solver_state.statistics())
     result = first_failure(initial_result, method_failure, from_diffrax(solution.result))
     ts = jnp.where(cannot_start, save_at, solution.ts)
     return _solution_from_saves(ts, solution.ys, result, stats, (y0, t0, t1, save_at, args))
