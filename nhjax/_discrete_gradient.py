@@ -224,6 +224,16 @@ def gonzalez_correction(
     printed = (numerator / jnp.where(zero, 1.0, squared_length)) * jnp.where(zero, 0.0, delta)
     if not taylor:
         return gradient + printed
+    # A branch, not a select: the expansion's third derivative, and in derivative
+    # programs its linearisation, run only for nearly equal points (under `vmap` a
+    # batch still evaluates both, as a select would).
+    near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
+    return gradient + jax.lax.cond(near, lambda: _taylor_form(f, gradient, x, x1, delta, printed, args), lambda: printed)
+
+
+def _taylor_form(f, gradient, x, x1, delta, printed, args):
+    """The correction term of `gonzalez_correction` for nearly equal points: the
+    printed value, with the derivatives of its Taylor expansion."""
     length = safe_norm(delta)
     direction = delta / jnp.where(length == 0, 1.0, length)
     third = _third_directional_derivative(f, 0.5 * (x + x1), gradient, direction, args)
@@ -234,9 +244,7 @@ def gonzalez_correction(
     # drift the energy; the printed value keeps (discGradEn) to rounding, and its
     # cancellation, an error of eps |f| / |delta| in the gradient, moves the step by
     # rounding only (the step is h times it, and |delta| = O(h)).
-    taylor_form = expansion + jax.lax.stop_gradient(printed - expansion)
-    near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
-    return gradient + jnp.where(near, taylor_form, printed)
+    return expansion + jax.lax.stop_gradient(printed - expansion)
 
 
 def itoh_abe(
