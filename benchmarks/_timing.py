@@ -73,6 +73,26 @@ def per_step(system, method, y0, steps, repeats, args=None, dt=0.1):
     return seconds / steps * 1e6, compile_s, iterations
 
 
+def bare_loop_per_step(system, method, y0, steps, repeats, args=None, dt=0.1) -> float:
+    """Median µs/step of the same steps as `per_step` strung together by a bare
+    `lax.scan` of the method's step (`method.advance`), without diffrax's loop: what
+    the loop itself costs is the difference."""
+    import jax.numpy as jnp
+
+    def run(y0):
+        state = method.init(system, 0.0, dt, y0, args)
+
+        def step(carry, _):
+            y, state = carry
+            y, state, _ = method.advance(system, jnp.asarray(dt, jax.tree.leaves(y0)[0].dtype), y, args, state)
+            return (y, state), None
+
+        return jax.lax.scan(step, (y0, state), None, length=steps)[0][0]
+
+    _, seconds = run_and_time(jax.jit(run), y0, repeats=repeats)
+    return seconds / steps * 1e6
+
+
 def batch_rate(system, method, states, steps, repeats, args=None, dt=0.1):
     """(median trajectory-steps/s, number of failed trajectories) of a vmapped batch
     (leading axis of `states`), run with `throw=False` so that a failure is counted,

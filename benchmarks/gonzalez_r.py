@@ -10,6 +10,7 @@
 - A vmapped batch of 200 gearbox trajectories: trajectory-steps/s against the vmapped
   yardstick, target at most 2x slower, and no trajectory failing; the quartic batch
   beside it.
+- What diffrax's loop adds: the gearbox steps strung together by a bare `lax.scan`.
 - Compile times, root-finder iterations per step, and the paper's full gearbox run
   (t in [0, 50000], 500 000 steps) with its energy and constraint errors.
 
@@ -30,7 +31,7 @@ jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
 import peers  # noqa: E402
-from _timing import batch_rate, options as command_line, per_step, run_and_time, timed, write, yardstick  # noqa: E402
+from _timing import bare_loop_per_step, batch_rate, options as command_line, per_step, run_and_time, timed, write, yardstick  # noqa: E402
 
 
 def _median_ratio(pairs):
@@ -78,6 +79,7 @@ def main():
               f"quartic {quartic_us:.2f} against DiscreteGradient {dg_us:.2f} ({quartic_us / dg_us:.2f}x); "
               f"batch {gr_rate:.3e} against {yard_rate:.3e} ({yard_rate / gr_rate:.2f}x slower), {failed} failed")
 
+    bare_us = bare_loop_per_step(gearbox.canonical, method, y0, options.steps, options.repeats)
     finite_us, finite_compile_s, finite_iterations = per_step(
         gearbox.canonical, nh.GonzalezR(derivative="central_difference"), y0, options.steps, options.repeats
     )
@@ -124,6 +126,7 @@ def main():
                 numpy_fsolve_us_per_step=numpy_us["gearbox"], numpy_speedup=numpy_us["gearbox"] / gr_us,
                 target_numpy_speedup=100.0,
                 compile_s=compile_s, root_find_iterations_per_step=iterations,
+                bare_scan_us_per_step=bare_us,
             ),
             gonzalez_r_central_difference=dict(
                 us_per_step=finite_us, compile_s=finite_compile_s, root_find_iterations_per_step=finite_iterations
@@ -159,6 +162,7 @@ def main():
     print(f"gearbox GONZALEZ-R : {gr_us:.2f} µs/step, {gearbox_results['gonzalez_r']['ratio_to_yardstick']:.2f}x "
           f"the yardstick (target <= 2.5), {gearbox_results['gonzalez_r']['numpy_speedup']:.0f}x NumPy + fsolve "
           f"(target >= 100), {iterations:.2f} iterations/step, compile {compile_s:.1f} s")
+    print(f"   the same steps in a bare lax.scan, without diffrax's loop: {bare_us:.2f} µs/step")
     print(f"   central differences {finite_us:.2f} µs/step; GONZALEZ-F {direct_us:.2f} µs/step")
     print(f"quartic n = 3      : {quartic_us:.2f} µs/step, {quartic_results['ratio']:.2f}x DiscreteGradient on the "
           f"reduced form (target <= 3), {quartic_results['numpy_speedup']:.0f}x NumPy + fsolve (target >= 100)")

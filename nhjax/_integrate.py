@@ -233,7 +233,7 @@ def integrate(
     """Integrate `system` with `method` over `n_steps` steps of size `dt` from `t0`.
 
     The time loop is `diffrax.diffeqsolve` with the steps fixed exactly at
-    `t0 + k dt` (`diffrax.StepTo`), saving the initial state and every `save_every`-th
+    `t0 + k dt` (`FixedStepTimes`), saving the initial state and every `save_every`-th
     step (`diffrax.SaveAt(steps=...)`). Works under `jax.jit` and `jax.vmap` (e.g. over
     a batch of `y0`), and compiles once per (system, method, shapes, static arguments):
     `dt`, `t0`, `y0` and float leaves of `args` are traced.
@@ -341,6 +341,36 @@ def _describe_failure(solution: Solution, dt, t0, n_steps) -> str:
     )
 
 
+class FixedStepTimes(diffrax.AbstractStepSizeController):
+    r"""Steps to exactly $t_k = t_0 + k\,\Delta t$, $k = 1, \dots$, each time computed from
+    $k$ as `t0 + dt * k` (the same rounding as `t0 + dt * jnp.arange(n + 1)`).
+
+    What `diffrax.StepTo` does with the array of all step times, without reading that
+    array in the loop, which on XLA:CPU slowed every step of a cheap method by a large
+    fraction of its cost (the times and states are identical;
+    `python benchmarks/gonzalez_r.py` measures the loop's cost per step against a bare
+    `lax.scan` of the same steps). The run ends when
+    diffrax's loop reaches $t_1 = t_0 + n\,\Delta t$; `integrate` checks beforehand that
+    no step lands within diffrax's end-clipping margin (100 ulps) of $t_1$ early."""
+
+    t0: Float[Array, ""]
+    dt: Float[Array, ""]
+
+    def wrap(self, direction):
+        del direction  # integrate always steps forward
+        return self
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        del terms, t0, t1, y0, dt0, args, func, error_order
+        return self.t0 + self.dt, jnp.array(2, dtype=jnp.int32)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        del t0, y0, y1_candidate, args, y_error, error_order
+        k = controller_state
+        next_time = self.t0 + self.dt * k.astype(self.dt.dtype)
+        return True, t1, next_time, False, k + 1, diffrax.RESULTS.successful
+
+
 def _method_outcome(solver_state) -> tuple[RESULTS, dict[str, Array]]:
     """The nhjax code and root-finder statistics in a run's final solver state; success
     and none for a diffrax solver, which reports through `solution.result` alone."""
@@ -358,7 +388,15 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
     # NaN state at harmless times, so that it stops after one failed step.
     safe_dt = jnp.where(valid_dt, dt, jnp.ones_like(dt))
     step_times = t0 + safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype)
-    valid_times = jnp.all(jnp.isfinite(step_times)) & jnp.all(jnp.diff(step_times) > 0)
+    # Increasing, and no step before the last within diffrax's end clipping (100 ulps
+    # of t1), which would end the loop early.
+    end_margin = 128 * jnp.finfo(dt.dtype).eps * jnp.abs(step_times[-1])
+    valid_times = (
+        jnp.all(jnp.isfinite(step_times))
+        & jnp.all(jnp.diff(step_times) > 0)
+        & (step_times[-1] - step_times[-2] > end_margin)
+    )
+    t0 = jnp.where(valid_times, t0, jnp.zeros_like(t0))
     step_times = jnp.where(valid_times, step_times, safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype))
     initial_result = first_failure(
         RESULTS.where(valid_dt, RESULTS.successful, RESULTS.invalid_dt),
@@ -381,7 +419,7 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
         y0=y_start,
         args=args,
         saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=_save_observables(system), solver_state=True),
-        stepsize_controller=diffrax.StepTo(ts=step_times),
+        stepsize_controller=FixedStepTimes(t0, safe_dt),
         max_steps=n_steps,
         adjoint=adjoint,
         throw=False,

@@ -54,6 +54,10 @@ def test_save_every_and_times():
     np.testing.assert_allclose(later.ys, sparse.ys, rtol=1e-13, atol=1e-13)
     np.testing.assert_array_equal(sparse.energy, every.energy[::8])
     assert sparse.constraint is None
+    # Every step ends exactly at t0 + k dt, rounded as that expression is.
+    later_every = nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 40, t0=1.0)
+    np.testing.assert_array_equal(later_every.ts, 1.0 + jnp.float64(0.1) * jnp.arange(41, dtype=jnp.float64))
+    assert int(later_every.stats["num_steps"]) == 40
     assert int(every.stats["num_steps"]) == 40
     assert int(every.stats["root_find_steps"]) >= 40 and int(every.stats["max_root_find_steps"]) >= 1
 
@@ -271,6 +275,10 @@ def test_step_sizes_and_times_that_cannot_be_stepped():
     assert solution.result == nh.RESULTS.invalid_t0
     with pytest.raises(RuntimeError, match="t0 \\+ k dt must be finite and strictly increasing"):
         nh.integrate(oscillator, METHOD, x0, 0.1, 10, t0=1e20)
+    # 1e6 + k 1e-9 increases, but each step is within diffrax's end clipping (100 ulps
+    # of the end time), which would end the run early: refused rather than cut short.
+    assert nh.integrate(oscillator, METHOD, x0, 1e-9, 10, t0=1e6, throw=False).result == nh.RESULTS.invalid_t0
+    assert nh.integrate(oscillator, METHOD, x0, 1e-6, 10, t0=1e6, throw=False).result == nh.RESULTS.successful
     traced = jax.jit(lambda t0: nh.integrate(oscillator, METHOD, x0, 0.1, 10, t0=t0, throw=False).result)
     assert traced(jnp.nan) == nh.RESULTS.invalid_t0
     assert traced(1.0) == nh.RESULTS.successful
