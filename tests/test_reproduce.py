@@ -17,6 +17,7 @@ from nhjax._reproduce import FIGURES, QUICK, reproduce
 
 SMALL = dataclasses.replace(
     QUICK,
+    ensemble_count=50,
     quartic_methods=("SI-DLA", "GONZALEZ"),
     order_step_sizes=(0.1, 0.05, 0.025),
     sleigh_gonzalez_r=False,

@@ -50,7 +50,7 @@ def reproduce(
     **Arguments:**
 
     - `figures`: names from `FIGURES`, or `"all"`.
-    - `quick`: reduced sizes (Figure 1's ensemble 50 states to t = 500, Figure 3's run
+    - `quick`: reduced sizes (Figure 1's ensemble 200 states to t = 500, Figure 3's run
         50 000 steps, Figure 5's 20 000), a few minutes in all; otherwise the paper's sizes.
     - `out`: the output folder. Chunks of long runs go to `out/chunks/`, and a rerun into
         the same folder continues from them.
