@@ -3,14 +3,16 @@ time against the forward run's, and peak memory.
 
 The loss is a smooth function of the final state after N steps at h = 0.1, for each N in
 `--steps` (default 2 000 and 100 000), differentiated with respect to the initial state
-(q0, p0) through `nhjax.integrate`: in reverse mode (`jax.grad`) with the default
-adjoint (`nhjax._integrate.default_adjoint`: a checkpoint at every step while they fit
-in its memory budget) and with `diffrax.RecursiveCheckpointAdjoint()` (O(log n)
-checkpoints), and in forward mode (`jax.jacfwd` with `diffrax.ForwardMode()`). Each
-measurement runs in its own process, so that its peak resident memory (`ru_maxrss`) is
-its own; the peak after compilation is recorded too, so that what the run itself adds is
-visible. A derivative's time ratio to the forward run comes from its own process, the
-two timed in turn after the memory is recorded.
+(q0, p0) through `nhjax.integrate`. Modes: `reverse` (`jax.grad`) and `forward-mode`
+(`jax.jacfwd`) with the default adjoint (the steps replayed from their stored roots,
+`nhjax._replay`); for comparison, `reverse-checkpointed` with diffrax's loop
+checkpointed at every step (`diffrax.RecursiveCheckpointAdjoint(checkpoints=N)`, the
+default before the replay), `reverse-log-checkpoints` with its O(log n) checkpoints,
+and `forward-mode-diffrax` (`diffrax.ForwardMode()`). Each measurement runs in its own
+process, so that its peak resident memory (`ru_maxrss`) is its own; the peak after
+compilation is recorded too, so that what the run itself adds is visible. A
+derivative's time ratio to the forward run comes from its own process, the two timed in
+turn after the memory is recorded.
 
 Run: python benchmarks/gradients.py [--steps N ...] [--repeats R]
 Medians over repeats; results go to benchmarks/results/gradients.json.
@@ -24,7 +26,14 @@ import subprocess
 import sys
 
 
-_MODES = ("forward", "reverse", "reverse-log-checkpoints", "forward-mode")
+_MODES = (
+    "forward",
+    "reverse",
+    "forward-mode",
+    "reverse-checkpointed",
+    "reverse-log-checkpoints",
+    "forward-mode-diffrax",
+)
 
 
 def _peak_mib() -> float:
@@ -47,8 +56,10 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
     adjoint, transform = {
         "forward": (None, lambda function: function),
         "reverse": (None, jax.grad),
+        "forward-mode": (None, jax.jacfwd),
+        "reverse-checkpointed": (diffrax.RecursiveCheckpointAdjoint(checkpoints=steps), jax.grad),
         "reverse-log-checkpoints": (diffrax.RecursiveCheckpointAdjoint(), jax.grad),
-        "forward-mode": (diffrax.ForwardMode(), jax.jacfwd),
+        "forward-mode-diffrax": (diffrax.ForwardMode(), jax.jacfwd),
     }[mode]
 
     def loss(y0):

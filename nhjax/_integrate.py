@@ -5,14 +5,16 @@ vector field (`integrate_adaptive`), the non-geometric baseline and the tests' r
 **What a step costs.** For the implicit methods, the method's root find: for GONZALEZ-R
 the chord matrix and about four residuals (see `nhjax._solver.gonzalez_r`); around it
 the loop adds diffrax's bookkeeping and, at each save, the energy and constraint
-residual. Reverse-mode derivatives (`diffrax.RecursiveCheckpointAdjoint`, by default
-with a checkpoint at every step, `default_adjoint`) run each step again from its
-checkpoint and then the transpose of its linearisation, which for every method costs
-several forward steps. `python benchmarks/gradients.py` measures the time and
-peak memory of a gradient against the forward run; `python benchmarks/suite.py` the
-forward steps of every method.
+residual. Derivatives of a run with an nhjax method come from its stored roots
+(`nhjax._replay`): the run once by the root finder, keeping each step's root, then per
+step one replay of the step from its root and the transpose (reverse mode) or the
+tangent (forward mode) of its linearisation, with no root finder in the derivative.
+`python benchmarks/gradients.py` measures the time and peak memory of a gradient
+against the forward run, and against diffrax's checkpointed adjoints;
+`python benchmarks/suite.py` the forward steps of every method.
 """
 
+import functools
 import math
 import numbers
 from collections.abc import Callable
@@ -25,8 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
+from ._replay import replay_storage_bytes, replayed_run
 from ._results import first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, RESULTS
-from ._solver.base import AbstractMethodState
+from ._solver.base import AbstractMethod, AbstractMethodState
 from ._solver.projection import Projection
 from ._system import AbstractSystem
 
@@ -191,15 +194,17 @@ CHECKPOINT_BUDGET_BYTES = 32 * 2**20
 
 
 def default_adjoint(system, method, y0, args, dt, n_steps: int) -> diffrax.RecursiveCheckpointAdjoint:
-    r"""The reverse-mode adjoint of a fixed-step run: a checkpoint at every step where
-    `n_steps` checkpoints of the state and the method's solver state fit in
-    `CHECKPOINT_BUDGET_BYTES` (per trajectory: under `vmap` a batch of $B$ takes $B$
-    times as much), otherwise diffrax's $O(\log n)$ checkpoints.
+    r"""The reverse-mode adjoint of a fixed-step run whose derivatives are not replayed
+    from stored roots (`replays_derivatives`: a diffrax solver, a composition, or a run
+    too long for the budget): a checkpoint at every step where `n_steps` checkpoints of
+    the state and the method's solver state fit in `CHECKPOINT_BUDGET_BYTES` (per
+    trajectory: under `vmap` a batch of $B$ takes $B$ times as much), otherwise
+    diffrax's $O(\log n)$ checkpoints.
 
     With a checkpoint at every step the backward pass runs each step once more, then
     the transpose of its linearisation; with $c < n$ checkpoints it first recomputes
     steps from the nearest checkpoint, $O(n\log n)$ steps in all for $c = O(\log n)$.
-    `python benchmarks/gradients.py` measures both against the forward run."""
+    `python benchmarks/gradients.py` measures them against the forward run."""
     solver_state = jax.eval_shape(lambda: method.init(system, 0 * dt, dt, y0, args))
     per_step = sum(
         math.prod(leaf.shape) * jnp.dtype(leaf.dtype).itemsize
@@ -209,6 +214,16 @@ def default_adjoint(system, method, y0, args, dt, n_steps: int) -> diffrax.Recur
     if n_steps * per_step <= CHECKPOINT_BUDGET_BYTES:
         return diffrax.RecursiveCheckpointAdjoint(checkpoints=n_steps)
     return diffrax.RecursiveCheckpointAdjoint()
+
+
+def replays_derivatives(system, method, y0, args, dt, n_steps: int) -> bool:
+    """Whether the derivatives of a run without a given `adjoint` come from its stored
+    roots (`nhjax._replay`): for an nhjax method (`nhjax._solver.base.AbstractMethod`)
+    whose roots and replayed states for `n_steps` steps fit in
+    `CHECKPOINT_BUDGET_BYTES` per trajectory; otherwise `default_adjoint`."""
+    if not isinstance(method, AbstractMethod):
+        return False
+    return n_steps * replay_storage_bytes(system, method, y0, args, dt) <= CHECKPOINT_BUDGET_BYTES
 
 
 def _state_dtype(y0: PyTree) -> Any:
@@ -242,14 +257,17 @@ def integrate(
     and `t0`. Each step's root is differentiated by the implicit function theorem, with
     the exact Jacobian of the step equations, not through the root finder's iterations,
     so derivatives are those of the exact discrete flow.
-    Reverse mode (`jax.grad`, `jax.jacrev`) uses the default `adjoint`
-    (`default_adjoint`): a `diffrax.RecursiveCheckpointAdjoint` with a checkpoint at
-    every step where they fit in 32 MiB per trajectory, time O(n); beyond that
-    O(log n_steps) checkpoints, time O(n log n). Forward mode (`jax.jvp`, `jax.jacfwd`) needs
-    `adjoint=diffrax.ForwardMode()`. A failed trajectory's outputs, the saves before
-    the failure included, have NaN derivatives with respect to all of `y0`, `args`,
-    `dt` and `t0`, never finite-looking wrong ones; under `vmap` its neighbours keep
-    theirs.
+    With the default `adjoint=None` and an nhjax method, reverse and forward mode
+    (`jax.grad`, `jax.jacrev`, `jax.jvp`, `jax.jacfwd`) take the run once with the
+    root finder, store each step's root, and differentiate the steps replayed from
+    their roots (`nhjax._replay`): time O(n), memory O(n) within 32 MiB per
+    trajectory. Longer runs, compositions and diffrax solvers use `default_adjoint`: a
+    `diffrax.RecursiveCheckpointAdjoint` with a checkpoint at every step where they
+    fit in 32 MiB per trajectory, time O(n); beyond that O(log n_steps) checkpoints,
+    time O(n log n); forward mode there needs `adjoint=diffrax.ForwardMode()`. A
+    failed trajectory's outputs, the saves before the failure included, have NaN
+    derivatives with respect to all of `y0`, `args`, `dt` and `t0`, never
+    finite-looking wrong ones; under `vmap` its neighbours keep theirs.
 
     **Arguments:**
 
@@ -260,7 +278,8 @@ def integrate(
     - `n_steps`: the number of steps, a positive int.
     - `args`: parameters passed to every function of the system.
     - `save_every`: save every this many steps; must divide `n_steps`.
-    - `progress`: show a progress bar (diffrax's tqdm meter).
+    - `progress`: show a progress bar (diffrax's tqdm meter; not in the replayed
+        runs of derivatives).
     - `throw`: raise on failure. With `throw=False` failures are reported per
         trajectory in `Solution.result` instead.
     - `t0`: the initial time.
@@ -268,7 +287,8 @@ def integrate(
         (e.g. to continue a GONZALEZ-F run, whose constraint residual drifts); every other
         check of the initial state stays. May be traced.
     - `adjoint`: how derivatives pass through the time loop (see above); `None` for
-        `default_adjoint`'s choice. `diffrax.RecursiveCheckpointAdjoint()` keeps the
+        the replay from stored roots or `default_adjoint`'s choice. A diffrax adjoint
+        differentiates diffrax's loop: `diffrax.RecursiveCheckpointAdjoint()` keeps the
         memory at O(log n_steps) states whatever the run's length or batch.
 
     **Errors.** Wrong shapes, a non-integer `n_steps`, and a concrete `dt` that is not
@@ -397,7 +417,6 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
         & (step_times[-1] - step_times[-2] > end_margin)
     )
     t0 = jnp.where(valid_times, t0, jnp.zeros_like(t0))
-    step_times = jnp.where(valid_times, step_times, safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype))
     initial_result = first_failure(
         RESULTS.where(valid_dt, RESULTS.successful, RESULTS.invalid_dt),
         RESULTS.where(valid_times, RESULTS.successful, RESULTS.invalid_t0),
@@ -407,29 +426,38 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
     startable = initial_result == RESULTS.successful
     y_start = nan_where_failed(~startable, y0, y0)
 
-    if adjoint is None:  # chosen here, once per compilation
-        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
-    solution = diffrax.diffeqsolve(
-        system,
-        method,
-        t0=step_times[0],
-        t1=step_times[-1],
-        dt0=None,
-        y0=y_start,
-        args=args,
-        saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=_save_observables(system), solver_state=True),
-        stepsize_controller=FixedStepTimes(t0, safe_dt),
-        max_steps=n_steps,
-        adjoint=adjoint,
-        throw=False,
-        progress_meter=meter,
-    )
-    method_failure, statistics = _method_outcome(solution.solver_state)
-    stats = dict(num_steps=solution.stats["num_accepted_steps"])
+    replayed = adjoint is None and replays_derivatives(system, method, y0, args, dt, n_steps)
+    if adjoint is None and not replayed:  # chosen here, once per compilation
+        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
+
+    def run(system, method, y_start, dt, t0, args):
+        solution = diffrax.diffeqsolve(
+            system,
+            method,
+            t0=t0,
+            t1=t0 + dt * n_steps,
+            dt0=None,
+            y0=y_start,
+            args=args,
+            saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=_save_observables(system), solver_state=True),
+            stepsize_controller=FixedStepTimes(t0, dt),
+            max_steps=n_steps,
+            adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+            throw=False,
+            progress_meter=meter,
+        )
+        steps_taken = jnp.asarray(solution.stats["num_accepted_steps"], dtype=int)
+        return solution.ts, solution.ys, solution.solver_state, from_diffrax(solution.result), steps_taken
+
+    if replayed:
+        run = functools.partial(replayed_run, run=run, n_steps=n_steps, save_every=save_every)
+    ts, saved, solver_state, loop_result, steps_taken = run(system, method, y_start, safe_dt, t0, args)
+    method_failure, statistics = _method_outcome(solver_state)
+    stats = dict(num_steps=steps_taken)
     stats.update(statistics or dict(root_find_steps=None, max_root_find_steps=None))
-    result = first_failure(initial_result, method_failure, from_diffrax(solution.result))
-    return _solution_from_saves(solution.ts, solution.ys, result, stats, (y0, dt, t0, args))
+    result = first_failure(initial_result, method_failure, loop_result)
+    return _solution_from_saves(ts, saved, result, stats, (y0, dt, t0, args))
 
 
 def integrate_adaptive(

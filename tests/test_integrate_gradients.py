@@ -1,7 +1,9 @@
 """Derivatives through whole trajectories of every method: reverse mode against central
 finite differences, forward mode against reverse mode, the exact identity
 dH(y_N)/dtheta = dH(y_0)/dtheta of the energy-preserving methods, derivatives with
-respect to system parameters, and NaN derivatives through failed runs.
+respect to system parameters, NaN derivatives through failed runs, and the default
+route of derivatives (the run replayed from its stored roots, `nhjax._replay`) against
+diffrax's checkpointed loop.
 
 Each case is a map theta -> (initial state, args) on the constraint, with theta holding
 the initial positions, an unprojected momentum and the system's parameters, and the
@@ -256,6 +258,72 @@ def test_adjoint_must_be_a_diffrax_adjoint():
     y0, args = _gearbox_start()
     with pytest.raises(ValueError, match="adjoint must be a diffrax adjoint"):
         nh.integrate(GEARBOX, nh.SIDLA(), y0, 0.1, 2, args=args, adjoint="forward")
+
+
+def _mid_run_saves(adjoint):
+    """(p0, dt) -> the states, energies and times of every 8th of 40 GONZALEZ-R steps."""
+    (q0, _), args = _gearbox_start()
+
+    def saves(p0, dt):
+        solution = nh.integrate(GEARBOX, nh.GonzalezR(), (q0, p0), dt, 40, args=args, save_every=8, adjoint=adjoint)
+        return jnp.concatenate([*(y.ravel() for y in solution.ys), solution.energy, solution.ts])
+
+    return saves
+
+
+def test_replayed_derivatives_match_the_checkpointed_loop():
+    """Two routes to the derivatives of mid-run saves, their energies and times, with
+    respect to the momentum and dt: the default, replaying the run from its stored roots
+    (reverse and forward mode), and diffrax's loop checkpointed at every step, through
+    the root finder."""
+    (_, p0), _ = _gearbox_start()
+    dt = jnp.asarray(0.1)
+    checkpointed = jax.jit(jax.jacrev(_mid_run_saves(diffrax.RecursiveCheckpointAdjoint(checkpoints=40)), (0, 1)))
+    reverse = jax.jit(jax.jacrev(_mid_run_saves(None), (0, 1)))
+    forward = jax.jit(jax.jacfwd(_mid_run_saves(None), (0, 1)))
+    expected = checkpointed(p0, dt)
+    assert bool(jnp.all(jnp.abs(expected[1][-5:]) > 0))  # the save times depend on dt
+    for route in (reverse, forward):
+        for got, want in zip(route(p0, dt), expected):
+            assert _relative(got, want) <= 1e-10
+
+
+def test_differentiated_runs_report_what_the_loop_reports():
+    """Under differentiation a run is taken by `nhjax._replay`'s own loop; in a batch
+    where one trajectory fails at step 24 of 40 (on a save) and one succeeds, it
+    returns the diffrax loop's values, codes, statistics and save times (infinite after
+    the last step taken)."""
+    (q0, p0), args = _gearbox_start()
+    method = nh.GonzalezF(root_find_max_steps=12)
+
+    def run(p0, dt):
+        return nh.integrate(GEARBOX, method, (q0, p0), dt, 40, args=args, save_every=4, throw=False)
+
+    dts = jnp.array([0.1, 0.6])
+    batch = jax.jit(jax.vmap(run, (None, 0)))
+    plain = batch(p0, dts)
+    tangent = jnp.ones_like(p0)
+    differentiated, _ = jax.jit(jax.vmap(lambda dt: jax.jvp(lambda p: run(p, dt), (p0,), (tangent,))))(dts)
+    assert [int(n) for n in plain.stats["num_steps"]] == [40, 24]
+    assert bool((plain.result == nh.RESULTS.successful)[0])
+    assert bool((plain.result == nh.RESULTS.root_find_not_converged)[1])
+    assert bool(jnp.all(jnp.isinf(plain.ts[1, 7:]))) and bool(jnp.isfinite(plain.ts[1, 6]))
+    for got, want in zip(jax.tree.leaves(differentiated), jax.tree.leaves(plain)):
+        assert got.shape == want.shape and got.dtype == want.dtype
+        assert bool(jnp.all((got == want) | (jnp.isnan(got) & jnp.isnan(want))))
+
+
+def test_derivatives_replay_runs_whose_roots_fit_the_budget():
+    from nhjax._integrate import CHECKPOINT_BUDGET_BYTES, replays_derivatives
+
+    y0, args = _gearbox_start()
+    dt = jnp.asarray(0.1)
+    per_step_floor = sum(leaf.nbytes for leaf in y0)
+    assert replays_derivatives(GEARBOX, nh.GonzalezR(), y0, args, dt, 1000)
+    too_many = CHECKPOINT_BUDGET_BYTES // per_step_floor + 1
+    assert not replays_derivatives(GEARBOX, nh.GonzalezR(), y0, args, dt, too_many)
+    # A composition takes several root finds per step: diffrax's checkpointed loop.
+    assert not replays_derivatives(GEARBOX, nh.Composition(nh.SIDLA(), 4), y0, args, dt, 10)
 
 
 def test_default_adjoint_checkpoints_every_step_within_its_budget():

@@ -238,7 +238,27 @@ class AbstractMethod(diffrax.AbstractSolver):
         then in its loop, and again for derivatives), so the step is a `jax.jit` call
         with the method, the system and the static arguments as its static arguments:
         JAX traces it once for them and the shapes of the rest, and reuses the trace."""
+        y1, solver_state, failure, _ = self.solve_step(system, h, y0, args, solver_state)
+        return y1, solver_state, failure
+
+    def solve_step(
+        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, solver_state: MethodState
+    ) -> tuple[PyTree[Array], MethodState, RESULTS, Float[Array, " u"]]:
+        """`advance`, and the root of the step's equations, which `replay_step` turns
+        into the same step again without the root finder."""
         return _traced_once(self, system, h, y0, args, solver_state)
+
+    def replay_step(
+        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, carry: PyTree, root: Float[Array, " u"]
+    ) -> tuple[PyTree[Array], PyTree]:
+        r"""The new state and carry of the step from `y0` whose root `solve_step`
+        returned: the same values as `advance` (from the same setup and completion,
+        with `root` in place of the root finder's answer), and the derivatives the
+        implicit function theorem gives the step (`_implicit_root`). For derivatives of
+        a whole run without the root finder in them (`nhjax._replay`)."""
+        _, data = self.setup(system, h, y0, args, carry)
+        root = _implicit_root(lax.stop_gradient(root), data, residual=self.residual)
+        return self.complete(root, data)
 
     def _advance(self, system, h, y0, args, solver_state):
         guess, data = self.setup(system, h, y0, args, solver_state.carry)
@@ -275,7 +295,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         failure = step_failure(
             evaluations_finite, all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
         )
-        return y1, solver_state.record(solution.stats["num_steps"], failure, carry), failure
+        return y1, solver_state.record(solution.stats["num_steps"], failure, carry), failure, solution.value
 
 
 @eqx.filter_jit

@@ -1,0 +1,159 @@
+r"""Derivatives of a fixed-step run from its stored roots.
+
+Each step of an nhjax method is a root $u_k$ of its equations $F(u, y_k) = 0$ followed
+by $y_{k+1} = G(u_k, y_k)$ (`nhjax._solver.base.AbstractMethod`). A derivative of the
+run needs, per step, only the linearisation of $u_k(y_k)$ by the implicit function
+theorem, $\dot u_k = -(\partial_u F)^{-1}\partial_y F\,\dot y_k$, at the root; the
+root finder's iterations, which diffrax's checkpointed reverse loop runs again from
+every checkpoint, contribute nothing to it. So `replayed_run` is the run with its own
+derivative rule (`jax.custom_jvp`):
+
+- **without derivatives**, the diffrax loop of `nhjax.integrate`, unchanged;
+- **with derivatives** (forward and reverse mode), a `lax.scan` of the method's steps
+  that keeps each step's root $u_k$ and nothing else (`AbstractMethod.solve_step`),
+  then the tangent of a second scan that *replays* the steps from those roots
+  (`AbstractMethod.replay_step`: the step's setup and completion, and $u_k$ with its
+  implicit-function derivatives). Reverse mode transposes that tangent scan; its body
+  is rematerialised (`jax.checkpoint`), so what a run stores per step is $u_k$ and
+  the replay's state and carry, and what its backward pass computes per step is one
+  replay, its linearisation and the transpose, never a root find.
+
+The replay repeats the recorded step's arithmetic on the same values, so its states
+are the run's states; it steps to the same times $t_0 + k\,\Delta t$ as
+`nhjax._integrate.FixedStepTimes`, reports the same codes and statistics as the diffrax
+loop (a failed step is the last one taken; the saves after it are NaN, their times
+$\infty$), and a trajectory that failed has NaN derivatives (`nhjax.integrate` gates
+them). `python benchmarks/gradients.py` measures the derivative against the forward
+run and against diffrax's checkpointed adjoints.
+"""
+
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+
+from ._results import RESULTS
+from ._solver.base import AbstractMethod
+from ._system import AbstractSystem
+
+
+def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, args, dt) -> int:
+    """Bytes per step that a derivative through `replayed_run` keeps: the step's root
+    and the replay's state and carry."""
+
+    def first_step():
+        state = method.init(system, 0 * dt, dt, y0, args)
+        return state, method.solve_step(system, dt, y0, args, state)[3]
+
+    state, root = jax.eval_shape(first_step)
+    return sum(
+        math.prod(leaf.shape) * jnp.dtype(leaf.dtype).itemsize
+        for leaf in jax.tree.leaves((y0, state.carry, root))
+        if hasattr(leaf, "dtype")
+    )
+
+
+def _step_time(t0, dt, k):
+    """$t_k$, rounded as `nhjax._integrate.FixedStepTimes` rounds it."""
+    return t0 + dt * k.astype(dt.dtype)
+
+
+def _record(system, method, y_start, dt, t0, args, n_steps):
+    """The run's steps by the root finder, without derivatives: each step's root, and
+    whether it was taken and succeeded, and the final method state. A failed step is
+    the last one taken, as in diffrax's loop: the later ones are skipped, their roots
+    NaN."""
+    y_start, dt, t0, args = lax.stop_gradient((y_start, dt, t0, args))
+    state = method.init(system, t0, _step_time(t0, dt, jnp.array(1)), y_start, args)
+    root_shape = jax.eval_shape(lambda: method.solve_step(system, dt, y_start, args, state)[3])
+
+    def step(carry, k):
+        y, state = carry
+        h = _step_time(t0, dt, k + 1) - _step_time(t0, dt, k)
+        running = state.failure == RESULTS.successful
+
+        def take(_):
+            y1, state1, failure, root = method.solve_step(system, h, y, args, state)
+            failed = failure != RESULTS.successful
+            y1 = jax.tree.map(lambda x: jnp.where(failed, jnp.nan, x), y1)
+            return (y1, state1), (root, ~failed)
+
+        def skip(_):
+            root = jnp.full(root_shape.shape, jnp.nan, root_shape.dtype)
+            return (y, state), (root, jnp.array(False))
+
+        (y1, state1), (root, succeeded) = lax.cond(running, take, skip, None)
+        return (y1, state1), (root, succeeded, running)
+
+    (_, final_state), (roots, succeeded, taken) = lax.scan(
+        step, (y_start, state), jnp.arange(n_steps)
+    )
+    return roots, succeeded, taken, final_state
+
+
+def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, *, save_every):
+    """The saved states and observables of the run replayed from its roots (with the
+    derivatives of `AbstractMethod.replay_step`)."""
+    carry = method.initial_carry(system, y_start, args)
+    n_saves = roots.shape[0] // save_every
+
+    @jax.checkpoint
+    def step(state, inputs):
+        y, carry = state
+        k, root, success = inputs
+        h = _step_time(t0, dt, k + 1) - _step_time(t0, dt, k)
+        y1, carry1 = method.replay_step(system, h, y, args, carry, root)
+        y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
+        return (y1, carry1), None
+
+    def between_saves(state, inputs):
+        state, _ = lax.scan(step, state, inputs)
+        y = state[0]
+        return state, (y, system.observables(y, args))
+
+    blocks = jax.tree.map(
+        lambda x: x.reshape(n_saves, save_every, *x.shape[1:]),
+        (jnp.arange(roots.shape[0]), roots, succeeded),
+    )
+    _, (ys, observed) = lax.scan(between_saves, (y_start, carry), blocks)
+    first = jax.tree.map(lambda x: x[None], (y_start, system.observables(y_start, args)))
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
+
+
+def _save_times(dt, t0, taken, *, save_every):
+    """The save times $t_0, t_{s}, t_{2s}, \\dots$, and $\\infty$ for saves after the
+    last step taken (diffrax's fill)."""
+    n_saves = taken.shape[0] // save_every
+    steps = save_every * jnp.arange(n_saves + 1)
+    reached = jnp.concatenate([jnp.array([True]), taken[save_every - 1 :: save_every]])
+    return jnp.where(reached, _step_time(t0, dt, steps), jnp.inf)
+
+
+@eqx.filter_custom_jvp
+def replayed_run(system, method, y_start, dt, t0, args, *, run: Callable, n_steps: int, save_every: int):
+    """`run(system, method, y_start, dt, t0, args)`, the diffrax loop, which returns
+    `(ts, (ys, observed), final method state, the loop's code, number of steps taken)`,
+    with the derivatives of the replay from stored roots (see the module docstring)."""
+    return run(system, method, y_start, dt, t0, args)
+
+
+@replayed_run.def_jvp
+def _replayed_run_jvp(primals, tangents, *, run, n_steps, save_every):
+    del run
+    system, method, y_start, dt, t0, args = primals
+    roots, succeeded, taken, final_state = _record(system, method, y_start, dt, t0, args, n_steps)
+
+    def saves(system, method, y_start, dt, t0, args):
+        ts = _save_times(dt, t0, taken, save_every=save_every)
+        saved = _replayed_saves(
+            system, method, y_start, dt, t0, args, roots, succeeded, save_every=save_every
+        )
+        return ts, saved
+
+    (ts, saved), (ts_tangent, saved_tangent) = eqx.filter_jvp(saves, primals, tangents)
+    out = (ts, saved, final_state, RESULTS.successful, jnp.sum(taken, dtype=int))
+    no_tangent = jax.tree.map(lambda _: None, out[2:])
+    return out, (ts_tangent, saved_tangent, *no_tangent)
