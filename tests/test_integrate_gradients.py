@@ -313,6 +313,27 @@ def test_differentiated_runs_report_what_the_loop_reports():
         assert bool(jnp.all((got == want) | (jnp.isnan(got) & jnp.isnan(want))))
 
 
+def test_forward_over_forward_second_derivatives_match_finite_differences():
+    """The Hessian by `jax.jacfwd(jax.jacfwd(...))` through 5 GONZALEZ-R steps (the
+    predictor's carry and the Gonzalez correction included), against central
+    differences of the gradient: the root's implicit derivative is itself
+    differentiated with the root moving with the data."""
+    _, build, theta, dt = _gearbox_case()
+
+    def loss(theta):
+        y0, args = build(theta)
+        solution = nh.integrate(GEARBOX, nh.GonzalezR(), y0, dt, 5, args=args, save_every=5)
+        return jnp.sum(solution.ys[0][-1] ** 2) + jnp.sum(jnp.sin(solution.ys[1][-1]))
+
+    gradient = jax.jit(jax.grad(loss))
+    steps = 1e-5 * (1 + jnp.abs(theta))
+    differences = jnp.stack(
+        [(gradient(theta + s) - gradient(theta - s)) / (2 * s[i]) for i, s in enumerate(jnp.diag(steps))]
+    )
+    hessian = jax.jit(jax.jacfwd(jax.jacfwd(loss)))(theta)
+    assert _relative(hessian, differences) <= 1e-7
+
+
 def test_derivatives_replay_runs_whose_roots_fit_the_budget():
     from nhjax._integrate import CHECKPOINT_BUDGET_BYTES, replays_derivatives
 

@@ -57,6 +57,9 @@ def _implicit_root(root, data, *, residual):
 def _implicit_root_jvp(primals, tangents, *, residual):
     root, data = primals
     _, data_tangent = tangents
+    # The root as a function of the data again, so that differentiating this rule (second
+    # derivatives) sees the root, and with it the Jacobian below, move with the data.
+    root = _implicit_root(root, data, residual=residual)
     differentiable = jax.tree.map(lambda t: t is not None, data_tangent, is_leaf=lambda t: t is None)
     varying, fixed = eqx.partition(data, differentiable)
     tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
