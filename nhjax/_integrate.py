@@ -454,15 +454,17 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
             progress_meter=meter,
         )
         steps_taken = jnp.asarray(solution.stats["num_accepted_steps"], dtype=int)
-        return solution.ts, solution.ys, solution.solver_state, from_diffrax(solution.result), steps_taken
+        method_failure, _ = _method_outcome(solution.solver_state)
+        result = first_failure(method_failure, from_diffrax(solution.result))
+        return solution.ts, solution.ys, solution.solver_state, result, steps_taken
 
     if replayed:
         run = functools.partial(replayed_run, run=run, n_steps=n_steps, save_every=save_every)
-    ts, saved, solver_state, loop_result, steps_taken = run(system, method, y_start, safe_dt, t0, args)
-    method_failure, statistics = _method_outcome(solver_state)
+    ts, saved, solver_state, run_result, steps_taken = run(system, method, y_start, safe_dt, t0, args)
+    _, statistics = _method_outcome(solver_state)
     stats = dict(num_steps=steps_taken)
     stats.update(statistics or dict(root_find_steps=None, max_root_find_steps=None))
-    result = first_failure(initial_result, method_failure, loop_result)
+    result = first_failure(initial_result, run_result)
     return _solution_from_saves(ts, saved, result, stats, (y0, dt, t0, args))
 
 

@@ -135,7 +135,7 @@ def _save_times(dt, t0, taken, *, save_every):
 @eqx.filter_custom_jvp
 def replayed_run(system, method, y_start, dt, t0, args, *, run: Callable, n_steps: int, save_every: int):
     """`run(system, method, y_start, dt, t0, args)`, the diffrax loop, which returns
-    `(ts, (ys, observed), final method state, the loop's code, number of steps taken)`,
+    `(ts, (ys, observed), final method state, the run's code, number of steps taken)`,
     with the derivatives of the replay from stored roots (see the module docstring)."""
     return run(system, method, y_start, dt, t0, args)
 
@@ -154,6 +154,8 @@ def _replayed_run_jvp(primals, tangents, *, run, n_steps, save_every):
         return ts, saved
 
     (ts, saved), (ts_tangent, saved_tangent) = eqx.filter_jvp(saves, primals, tangents)
-    out = (ts, saved, final_state, RESULTS.successful, jnp.sum(taken, dtype=int))
+    # The run's code from the method's state, as the diffrax loop reports it (a step
+    # that fails is the loop's only way to stop early).
+    out = (ts, saved, final_state, final_state.failure, jnp.sum(taken, dtype=int))
     no_tangent = jax.tree.map(lambda _: None, out[2:])
     return out, (ts_tangent, saved_tangent, *no_tangent)

@@ -103,7 +103,10 @@ def first_failure(*results: RESULTS) -> RESULTS:
 
 @jax.custom_jvp
 def _zero_with_nan_derivative(failed, sources):
-    return jnp.zeros((), dtype=sources[0].dtype)
+    # A zero computed from `failed`, so that under vmap it is batched as its NaN
+    # tangent is: a constant zero's unbatched value beside a batched tangent fails
+    # to batch when a jitted vmap is differentiated (jax.jvp of jax.jit(jax.vmap(f))).
+    return jnp.where(failed, 0, 0).astype(sources[0].dtype)
 
 
 @_zero_with_nan_derivative.defjvp
