@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
-from ._replay import replay_storage_bytes, replayed_run
+from ._replay import replay_storage_bytes, replayed_run, tree_bytes
 from ._results import first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, RESULTS
 from ._solver.base import AbstractMethod, AbstractMethodState
 from ._solver.projection import Projection
@@ -206,12 +206,7 @@ def default_adjoint(system, method, y0, args, dt, n_steps: int) -> diffrax.Recur
     steps from the nearest checkpoint, $O(n\log n)$ steps in all for $c = O(\log n)$.
     `python benchmarks/gradients.py` measures them against the forward run."""
     solver_state = jax.eval_shape(lambda: method.init(system, 0 * dt, dt, y0, args))
-    per_step = sum(
-        math.prod(leaf.shape) * jnp.dtype(leaf.dtype).itemsize
-        for leaf in jax.tree.leaves((y0, solver_state))
-        if hasattr(leaf, "dtype")
-    )
-    if n_steps * per_step <= CHECKPOINT_BUDGET_BYTES:
+    if n_steps * tree_bytes((y0, solver_state)) <= CHECKPOINT_BUDGET_BYTES:
         return diffrax.RecursiveCheckpointAdjoint(checkpoints=n_steps)
     return diffrax.RecursiveCheckpointAdjoint()
 

@@ -40,6 +40,15 @@ from ._solver.base import AbstractMethod
 from ._system import AbstractSystem
 
 
+def tree_bytes(tree) -> int:
+    """The bytes of the arrays (or their shapes) in `tree`."""
+    return sum(
+        math.prod(leaf.shape) * jnp.dtype(leaf.dtype).itemsize
+        for leaf in jax.tree.leaves(tree)
+        if hasattr(leaf, "dtype")
+    )
+
+
 def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, args, dt) -> int:
     """Bytes per step that a derivative through `replayed_run` keeps: the step's root
     and the replay's state and carry."""
@@ -49,16 +58,17 @@ def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, arg
         return state, method.solve_step(system, dt, y0, args, state)[3]
 
     state, root = jax.eval_shape(first_step)
-    return sum(
-        math.prod(leaf.shape) * jnp.dtype(leaf.dtype).itemsize
-        for leaf in jax.tree.leaves((y0, state.carry, root))
-        if hasattr(leaf, "dtype")
-    )
+    return tree_bytes((y0, state.carry, root))
 
 
 def _step_time(t0, dt, k):
     """$t_k$, rounded as `nhjax._integrate.FixedStepTimes` rounds it."""
     return t0 + dt * k.astype(dt.dtype)
+
+
+def _step_size(t0, dt, k):
+    """$h_k = t_{k+1} - t_k$, the step diffrax's loop hands the method."""
+    return _step_time(t0, dt, k + 1) - _step_time(t0, dt, k)
 
 
 def _record(system, method, y_start, dt, t0, args, n_steps):
@@ -72,7 +82,7 @@ def _record(system, method, y_start, dt, t0, args, n_steps):
 
     def step(carry, k):
         y, state = carry
-        h = _step_time(t0, dt, k + 1) - _step_time(t0, dt, k)
+        h = _step_size(t0, dt, k)
         running = state.failure == RESULTS.successful
 
         def take(_):
@@ -104,7 +114,7 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, *, 
     def step(state, inputs):
         y, carry = state
         k, root, success = inputs
-        h = _step_time(t0, dt, k + 1) - _step_time(t0, dt, k)
+        h = _step_size(t0, dt, k)
         y1, carry1 = method.replay_step(system, h, y, args, carry, root)
         y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
         return (y1, carry1), None
