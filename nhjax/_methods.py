@@ -53,8 +53,8 @@ METHODS = {
     "idla": Method(
         "I-DLA", IDLA,
         adapted=False, keeps_energy=False, keeps_constraint=True,
-        description="the implicit DLA with the midpoint discrete Lagrangian in canonical coordinates: "
-        "constraint to roundoff, energy O(h^2)",
+        description="the implicit DLA with the midpoint discrete Lagrangian and the constraint impulses at "
+        "the step's ends, in canonical coordinates: constraint to roundoff, energy O(h^2)",
     ),
     "spark": Method(
         "SPARK", SPARK,

@@ -135,9 +135,14 @@ class NonholonomicSystem(AbstractSystem):
     def project_momentum(self, q, p, args=None) -> Float[Array, " n"]:
         r"""The momentum closest to `p` in the kinetic-energy norm that satisfies the
         constraint: $p - A^T(AKA^T)^{-1}AKp$, so that $A K p' = 0$."""
+        return p + self.constraints(q, args).T @ self.projection_impulse(q, p, args)
+
+    def projection_impulse(self, q, p, args=None) -> Float[Array, " k"]:
+        r"""The $c = -(AKA^T)^{-1}AKp$ of `project_momentum`, whose constraint impulse
+        $A^Tc$ takes `p` onto $\mathcal{D}^*(q)$."""
         a = self.constraints(q, args)
         ka_t = self.inverse_metric(q, args) @ a.T
-        return p - a.T @ solve_spd(a @ ka_t, ka_t.T @ p)
+        return -solve_spd(a @ ka_t, ka_t.T @ p)
 
     # The reduced system on D*.
 

@@ -185,8 +185,8 @@ def checks(order_values: dict, runs: dict, discrete: list, comparison: list, bou
             claims.append(check(
                 all(within[name] for name in others),
                 ", ".join(f"{name} {line} {ratios[name]:.2g}" for name in others)
-                + " (tried: I-DLA with the constraint force split evenly between the discrete Legendre "
-                "transforms; SPARK with the constraint force on Lobatto IIIB, Jay's stage constraints)",
+                + " (I-DLA in the discrete Lagrange-d'Alembert form, constraint impulses at the step's ends; "
+                "SPARK with the constraint force on Lobatto IIIB, Jay's stage constraints)",
                 "each within a factor 3 of the line, in [1/3, 3] (the paper: they behave similarly)",
                 secondary=True,
             ))
