@@ -264,11 +264,12 @@ def integrate(
     derivatives with respect to all of `y0`, `args`, `dt` and `t0`, never
     finite-looking wrong ones; under `vmap` its neighbours keep theirs.
 
-    Second derivatives are exact forward over forward (`jax.jacfwd(jax.jacfwd(f))`).
-    With reverse mode inside (`jax.hessian`, `jax.jacrev(jax.grad(f))`) they are not:
-    JAX's partial evaluation of the time loop turns each step's implicit derivative
-    into a constant before the outer derivative sees it, so the values are wrong (by
-    1-180% on the gearbox); use forward over forward.
+    Second derivatives need forward mode inside: `jax.jacfwd(jax.jacfwd(f))` and
+    `jax.jacrev(jax.jacfwd(f))` are exact. With reverse mode inside (`jax.hessian`,
+    `jax.jacrev(jax.grad(f))`, `jax.jacfwd(jax.grad(f))`) JAX's partial evaluation of
+    the time loop drops each step's implicit derivative before the outer derivative
+    sees it; rather than wrong values (they were 1-180% off on the gearbox) these
+    second derivatives are NaN (`nhjax._solver.base._nan_derivative`).
 
     **Arguments:**
 

@@ -39,7 +39,7 @@ def no_gradient(tree: PyTree) -> PyTree:
 
 
 @eqx.filter_custom_jvp
-def _implicit_root(root, data, *, residual):
+def _implicit_root(root, data, *, residual, replayed: bool = False):
     r"""`root`, a root of `residual(., data)`, with the derivatives the implicit function
     theorem gives it: $\dot u = -(\partial_u F)^{-1}\,\partial_{\text{data}}F\,
     \dot{\text{data}}$, with the exact Jacobian $\partial_u F$ at the root.
@@ -48,18 +48,50 @@ def _implicit_root(root, data, *, residual):
     solve raises a runtime error when it meets a non-finite value, and under `vmap` one
     failed trajectory (whose states are NaN from the failure on) would then stop the
     derivatives of the whole batch. Here a failed trajectory's derivatives are NaN and
-    its neighbours' are unaffected."""
-    del data, residual
+    its neighbours' are unaffected.
+
+    `replayed=True` (derivative programs only, `AbstractMethod.replay_step`): the value
+    is `root` plus an exact zero whose derivative is NaN (`_nan_derivative`). The
+    forward run keeps the bare `root`: an added zero would leave its values the same
+    but could change how XLA fuses, and with it the rounding, of what follows."""
+    del residual
+    if replayed:
+        return root + _nan_derivative(data).astype(root.dtype)
     return root
 
 
+def _nan_derivative(data) -> Array:
+    r"""Zero, whose derivative with respect to `data` is NaN: $\sqrt{0\cdot s}$ with $s$
+    the sum of one element of each of the data's floating-point leaves (finite, so that
+    the value is exactly zero whatever the data hold), whose derivative is
+    $0\cdot\dot s/(2\sqrt0)$ = NaN.
+
+    `_implicit_root`'s value is the root itself, a constant as a function of the data;
+    differentiated, it would give a zero derivative, i.e. a wrong one. Autodiff reaches
+    it only where JAX has dropped the derivative rule: its partial evaluation for
+    reverse mode inlines a custom-JVP function's body inside a loop, and a second
+    derivative with reverse mode inside (`jax.hessian`, `jax.jacfwd(jax.grad(f))`) then
+    differentiates that body. Those second derivatives come out NaN, not wrong; forward
+    mode inside (`jax.jacfwd(jax.jacfwd(f))`, `jax.jacrev(jax.jacfwd(f))`) keeps the rule
+    and is exact."""
+    firsts = [
+        jnp.ravel(leaf)[0]
+        for leaf in jax.tree.leaves(data)
+        if eqx.is_inexact_array(leaf) and leaf.size > 0 and not jnp.issubdtype(leaf.dtype, jnp.complexfloating)
+    ]
+    if not firsts:
+        return jnp.zeros(())
+    total = sum(jnp.where(jnp.isfinite(x), x, jnp.zeros_like(x)) for x in firsts)
+    return jnp.sqrt(0 * total)
+
+
 @_implicit_root.def_jvp
-def _implicit_root_jvp(primals, tangents, *, residual):
+def _implicit_root_jvp(primals, tangents, *, residual, replayed: bool = False):
     root, data = primals
     _, data_tangent = tangents
     # The root as a function of the data again, so that differentiating this rule (second
     # derivatives) sees the root, and with it the Jacobian below, move with the data.
-    root = _implicit_root(root, data, residual=residual)
+    root = _implicit_root(root, data, residual=residual, replayed=replayed)
     differentiable = jax.tree.map(lambda t: t is not None, data_tangent, is_leaf=lambda t: t is None)
     varying, fixed = eqx.partition(data, differentiable)
     tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
@@ -260,7 +292,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         implicit function theorem gives the step (`_implicit_root`). For derivatives of
         a whole run without the root finder in them (`nhjax._replay`)."""
         _, data = self.setup(system, h, y0, args, carry)
-        root = _implicit_root(lax.stop_gradient(root), data, residual=self.residual)
+        root = _implicit_root(lax.stop_gradient(root), data, residual=self.residual, replayed=True)
         return self.complete(root, data)
 
     def _advance(self, system, h, y0, args, solver_state):
