@@ -160,17 +160,18 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
         return guess, _StepData(system, args, h, q0, p0, q_scale, a_unit, a0, p_unit, v_unit)
 
     def _equations(self, u, data: _StepData):
-        r"""The scaled position equation's right-hand side, $q_1$, $\bar q$ and the
-        momentum after the step's forces: $D_2L_d(q_0, q_1)$ plus, for the midpoint
-        form, its half of the constraint impulse ($p_1$ itself)."""
+        r"""The scaled position equation's right-hand side, $q_1$, $\bar q$, the mean
+        velocity $w$ and the momentum after the step's forces: $D_2L_d(q_0, q_1)$ plus,
+        for the midpoint form, its half of the constraint impulse ($p_1$ itself)."""
         system, args, h = data.system, data.args, data.h
         n = data.q0.shape[0]
         increment = data.q_scale * u[:n]
         impulse = data.p_unit * u[n:]
         q1 = data.q0 + increment
         q_mid = data.q0 + 0.5 * increment
+        mean_velocity = increment / h
         inverse = system.inverse_metric(q_mid, args)
-        mean_momentum = solve_spd(inverse, increment / h)
+        mean_momentum = solve_spd(inverse, mean_velocity)
         force = -jax.grad(system.hamiltonian)(q_mid, mean_momentum, args)
         if self.constraint_force == "endpoints":
             start_reaction = 0.5 * data.a0.T @ impulse
@@ -179,15 +180,13 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
             start_reaction = end_reaction = 0.5 * (system.constraints(q_mid, args) / data.a_unit).T @ impulse
         position = h * inverse @ (data.p0 + 0.5 * h * force + start_reaction) / data.q_scale
         p1 = data.p0 + h * force + start_reaction + end_reaction
-        return position, q1, q_mid, p1
+        return position, q1, q_mid, mean_velocity, p1
 
     def residual(self, u, data: _StepData):
         n = data.q0.shape[0]
-        position, q1, q_mid, p1 = self._equations(u, data)
+        position, q1, q_mid, mean_velocity, p1 = self._equations(u, data)
         system, args = data.system, data.args
         if self.constraint_force == "endpoints":
-            safe_h = jnp.where(data.h == 0, jnp.ones_like(data.h), data.h)
-            mean_velocity = data.q_scale * u[:n] / safe_h
             constraint = system.constraints(q_mid, args) @ mean_velocity / (data.a_unit * data.v_unit)
         else:
             a1 = system.constraints(q1, args) / data.a_unit
@@ -195,7 +194,7 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
         return jnp.concatenate([u[:n] - position, constraint])
 
     def complete(self, u, data: _StepData):
-        _, q1, _, p1 = self._equations(u, data)
+        _, q1, _, _, p1 = self._equations(u, data)
         n = q1.shape[0]
         safe_h = jnp.where(data.h == 0, jnp.ones_like(data.h), data.h)
         if self.constraint_force == "endpoints":
