@@ -9,7 +9,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 
 from nhjax._solver.base import AbstractMethod
-from nhjax._linalg import inverse
+from nhjax._solver.chord import chord_inverse
 
 
 def per_call_us(function, x, repeats: int = 200) -> float:
@@ -49,14 +49,14 @@ def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int
 
     parts = dict(
         setup=per_call_us(setup, jnp.zeros((1,), q_or_x.dtype), repeats),
-        chord_matrix=per_call_us(lambda u: inverse(method.chord_jacobian(u, data)), guess, repeats),
+        chord_matrix=per_call_us(lambda u: chord_inverse(method.chord_jacobian(u, data)), guess, repeats),
         residual=per_call_us(lambda u: method.residual(u, data), guess, repeats),
         complete=per_call_us(lambda u: jax.tree.leaves(method.complete(u, data)[0]), guess, repeats),
     )
     if type(method).chord_jacobian is not AbstractMethod.chord_jacobian:
         # The method's own chord Jacobian against the generic one it replaces.
         parts["chord_matrix_by_jacfwd"] = per_call_us(
-            lambda u: inverse(jax.jacfwd(method.simplified_residual)(u, data)), guess, repeats
+            lambda u: chord_inverse(jax.jacfwd(method.simplified_residual)(u, data)), guess, repeats
         )
     parts["model"] = (
         parts["setup"] + parts["chord_matrix"] + iterations * parts["residual"] + parts["complete"]

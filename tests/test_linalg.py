@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 
-from nhjax._linalg import inverse, safe_norm, solve_spd, UNROLL_LIMIT
+from nhjax._linalg import inverse, inverse_without_pivoting, is_diagonally_dominant, safe_norm, solve_spd, UNROLL_LIMIT
 
 
 settings.register_profile("nhjax", max_examples=25, deadline=None, derandomize=True)
@@ -20,6 +20,26 @@ jitted_inverse, jitted_solve_spd = jax.jit(inverse), jax.jit(solve_spd)
 def test_inverse_with_pivoting_matches_lapack(n, seed):
     a = jax.random.normal(jax.random.key(seed), (n, n))
     np.testing.assert_allclose(jitted_inverse(a), jnp.linalg.inv(a), rtol=1e-9, atol=1e-9 * float(jnp.abs(jnp.linalg.inv(a)).max()))
+
+
+@given(n=st.integers(1, 13), seed=st.integers(0, 2**31 - 1), by_rows=st.booleans())
+def test_inverse_without_pivoting_matches_lapack_on_dominant_matrices(n, seed, by_rows):
+    """Diagonally dominant by rows or by columns, with off-diagonal entries as large as
+    the diagonal allows (no pivoting needed: Higham Thm 9.9)."""
+    off = jax.random.uniform(jax.random.key(seed), (n, n), minval=-1.0, maxval=1.0) * (1 - jnp.eye(n))
+    sums = jnp.sum(jnp.abs(off), axis=1 if by_rows else 0)
+    a = off + jnp.diag(jnp.where(jnp.arange(n) % 2 == 0, 1.01, -1.01) * (sums + 1e-3))
+    assert bool(is_diagonally_dominant(a))
+    np.testing.assert_allclose(
+        jax.jit(inverse_without_pivoting)(a), jnp.linalg.inv(a), rtol=1e-10, atol=1e-10 * float(jnp.abs(jnp.linalg.inv(a)).max())
+    )
+
+
+def test_diagonal_dominance():
+    assert bool(is_diagonally_dominant(jnp.array([[2.0, 1.5], [0.1, 1.0]])))  # by columns, not by rows
+    assert bool(is_diagonally_dominant(jnp.array([[2.0, 0.1], [1.5, 1.0]])))  # by rows, not by columns
+    assert not bool(is_diagonally_dominant(jnp.array([[1.0, 1.0], [1.0, 3.0]])))  # ties are not strict
+    assert not bool(is_diagonally_dominant(jnp.array([[1.0, 2.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.0, 1.0]])))
 
 
 def test_inverse_needs_pivoting_and_reports_singular_matrices():

@@ -17,10 +17,9 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, PyTree, Scalar
 
-from .._linalg import inverse
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
-from .chord import PresetChord
+from .chord import chord_inverse, PresetChord
 
 
 def unwrapped_system(terms) -> AbstractSystem:
@@ -307,10 +306,10 @@ class AbstractMethod(diffrax.AbstractSolver):
         if isinstance(root_finder, PresetChord):
             residual = self.root_find_residual
             jacobian = self.chord_jacobian(guess, fixed_data)
-            chord_inverse = inverse(jacobian)
+            inverse = chord_inverse(jacobian)
             evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(jacobian))
-            singular = ~jnp.all(jnp.isfinite(chord_inverse))
-            options["inverse"] = chord_inverse
+            singular = ~jnp.all(jnp.isfinite(inverse))
+            options["inverse"] = inverse
         solution = optx.root_find(
             residual,
             root_finder,

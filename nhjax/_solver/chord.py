@@ -21,10 +21,24 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
-from .._linalg import inverse as _inverse
+from .._linalg import inverse, inverse_without_pivoting, is_diagonally_dominant, UNROLL_LIMIT
+from ._rare_branch import rarely
 
 
 STALL_FACTOR = 8.0
+
+
+def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    r"""The inverse of a chord matrix (`nhjax._linalg`): without pivoting where the
+    matrix is diagonally dominant, as $I - O(h)$ is for small steps and the methods
+    whose unknowns are increments, and with partial pivoting elsewhere (large steps,
+    and GONZALEZ-F, whose multiplier block has a zero diagonal). Under `vmap` the
+    pivoted elimination runs only at the steps where some trajectory needs it
+    (`rarely`). Cut from differentiation, as the chord matrix is."""
+    jacobian = lax.stop_gradient(jacobian)
+    if jacobian.shape[0] > UNROLL_LIMIT:
+        return inverse(jacobian)
+    return rarely(~is_diagonally_dominant(jacobian), inverse, inverse_without_pivoting(jacobian), jacobian)
 
 
 class _ChordState(eqx.Module):
@@ -39,7 +53,7 @@ class PresetChord(optx.AbstractRootFinder):
     r"""PresetChord iteration for a root of `fn(u, args)`, `u` a 1-D array.
 
     The inverse Jacobian approximation is `options["inverse"]` when the caller supplies
-    one (formed explicitly, `nhjax._linalg.inverse`: one matrix-vector product per
+    one (formed explicitly, `chord_inverse`: one matrix-vector product per
     iteration instead of two triangular solves; the chord matrix is well conditioned,
     $I - O(h)$, and the inverse's rounding changes the contraction rate, not the root);
     otherwise the inverse of
@@ -75,7 +89,7 @@ class PresetChord(optx.AbstractRootFinder):
             jacobian = options.get("jacobian")
             if jacobian is None:
                 jacobian = jax.jacfwd(lambda u: fn(u, args)[0])(y)
-            inverse = _inverse(jacobian)
+            inverse = chord_inverse(jacobian)
         inverse = lax.stop_gradient(inverse)
         infinity = jnp.array(jnp.inf, dtype=y.dtype)
         return _ChordState(inverse, infinity, infinity, infinity, jnp.array(0))

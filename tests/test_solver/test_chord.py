@@ -1,11 +1,12 @@
 """The chord root finder: convergence, divergence, and stalls at the rounding floor."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
 
-from nhjax._solver.chord import PresetChord, STALL_FACTOR
+from nhjax._solver.chord import chord_inverse, PresetChord, STALL_FACTOR
 
 
 ATOL = 1e-10
@@ -62,3 +63,16 @@ def test_slow_convergence_is_accepted_only_near_the_root():
 def test_growing_or_nonfinite_corrections_are_divergence(growth):
     solution = _solve(lambda u, args: growth * (u - ROOT) + 1.0, jnp.eye(3))
     assert solution.result == optx.RESULTS.nonlinear_divergence
+
+
+def test_chord_inverse_pivots_only_where_needed_also_within_a_batch():
+    """A dominant matrix and one whose first pivot is zero, alone and in one vmapped
+    batch: each gets its exact inverse (the second only by pivoting)."""
+    dominant = jnp.array([[1.0, 0.2, -0.1], [0.3, -1.0, 0.2], [0.0, 0.4, 1.0]])
+    needs_pivoting = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    jitted = jax.jit(chord_inverse)
+    for a in (dominant, needs_pivoting):
+        np.testing.assert_allclose(jitted(a) @ a, jnp.eye(3), atol=1e-15)
+    batch = jax.jit(jax.vmap(chord_inverse))(jnp.stack([dominant, needs_pivoting, dominant]))
+    for a, inverse in zip((dominant, needs_pivoting, dominant), batch):
+        np.testing.assert_allclose(inverse @ a, jnp.eye(3), atol=1e-15)
