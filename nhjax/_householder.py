@@ -14,7 +14,9 @@ neighbourhood of the first point where no $\tilde w$ vanishes, so that frames sa
 different points of one step belong to the same basis vector fields. Every operation is
 a plain `jax.numpy` operation, so `jax.jacfwd` through `householder_frame` gives
 $\partial X/\partial q$: this replaces the paper's Algorithm 1 (its second half is the
-forward-mode derivative of its first).
+forward-mode derivative of its first). Where only products $X^Tv$ are needed,
+`householder_frame_transpose_times` forms them from the reflectors without forming
+$X$, and its derivative is a derivative of $k$ reflections of one vector.
 """
 
 import jax.numpy as jnp
@@ -79,3 +81,15 @@ def householder_frame(
     for w in reversed(vectors):
         frame = frame - 2 * jnp.outer(w, w @ frame)
     return frame, jnp.min(pivots)
+
+
+def householder_frame_transpose_times(
+    a_t: Float[Array, "n k"], signs: Float[Array, " k"], v: Float[Array, " n"]
+) -> Float[Array, " m"]:
+    r"""$X^Tv$ for the frame $X$ of `householder_frame` (the same sign choices), without
+    forming $X$: $X^Tv = [0\ I_m]\,H_k\cdots H_1v$, $k$ reflections of a vector."""
+    k = a_t.shape[1]
+    vectors, _, _, _ = _reflectors(a_t, signs)
+    for w in vectors:
+        v = v - 2 * w * (w @ v)
+    return v[k:]

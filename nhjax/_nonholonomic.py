@@ -15,7 +15,7 @@ from jaxtyping import Array, Float
 
 from ._lagrangian import Lagrangian, LegendreHamiltonian
 from ._linalg import is_quadratic_form, solve_spd
-from ._householder import householder_frame, householder_pivots, householder_signs
+from ._householder import householder_frame, householder_frame_transpose_times, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
 from ._reduced import Derivative, ReducedSystem
 from ._system import AbstractSystem, SkewGradientSystem, require_floating_vector, require_scalar
@@ -153,6 +153,10 @@ class NonholonomicSystem(AbstractSystem):
     def frame(self, q, args, signs) -> Float[Array, "n m"]:
         """$X(q; s)$: orthonormal columns spanning $\\mathcal{D}_q = \\ker A(q)$."""
         return householder_frame(self.constraints(q, args).T, signs)[0]
+
+    def frame_transpose_times(self, q, args, signs, v) -> Float[Array, " m"]:
+        """$X(q; s)^Tv$, without forming $X$ (`householder_frame_transpose_times`)."""
+        return householder_frame_transpose_times(self.constraints(q, args).T, signs, v)
 
     def step_result(self, y0, y1, args) -> RESULTS:
         """`rank_result` at the step's end with the stable signs at its start: $A$ lost

@@ -94,10 +94,16 @@ class ReducedSystem(eqx.Module):
     - $\Pi = \begin{pmatrix} 0 & X \\ -X^T & B\end{pmatrix}$ with
       $B_{ab} = p^T(\partial X_a[X_b] - \partial X_b[X_a])$, eqs. (PiMat), (skewMat).
 
-    $\partial X/\partial q$ is `"autodiff"` (`jax.jacfwd` through the QR) or
-    `"central_difference"`: $(X(q + \epsilon e_i) - X(q - \epsilon e_i))/2\epsilon$, the
-    paper's finite-difference remark, with $\epsilon$ = `difference_step` (GONZALEZ-R
-    passes $|h|$, as the paper does, so the method stays second order).
+    The frame's derivative enters both only through $J = \partial_q(X^Tp)$ at fixed
+    $p$, $J_{ai} = p^T\partial_iX_a$ (`contracted_frame_derivative`): $B = JX - (JX)^T$
+    and $p^T\partial_iX\,y = (J^Ty)_i$. It is `"autodiff"` (`jax.jacfwd` of
+    $q \mapsto X(q)^Tp$, $k$ Householder reflections of the vector $p$, through the
+    QR) or `"central_difference"`: $(X(q + \epsilon e_i) - X(q - \epsilon e_i))^Tp/2\epsilon$,
+    the paper's finite-difference remark, with $\epsilon$ = `difference_step`
+    (GONZALEZ-R passes $|h|$, as the paper does, so the method stays second order).
+    Differentiating the $m$-vector $X^Tp$ rather than the $n \times m$ matrix $X$
+    carries $n$ tangents of a vector through the reflections instead of $n$ tangents of
+    a matrix.
 
     `metric` says how $M(q)$ enters: `"position"` (default) through products with
     $\partial^2H/\partial p^2$ at each $q$ (`momentum_by_projection`); `"identity"` for
@@ -161,16 +167,15 @@ class ReducedSystem(eqx.Module):
         q, p = self.from_reduced(zeta, args)
         return self.system.hamiltonian(q, p, args)
 
-    def frame_and_derivative(self, q, args):
-        r"""$X(q)$ and $\partial X/\partial q$, shape (n, m, n)."""
-        frame = lambda x: self.system.frame(x, args, self.signs)  # noqa: E731
+    def contracted_frame_derivative(self, q, p, args) -> Float[Array, "m n"]:
+        r"""$J = \partial_q(X(q)^Tp)$ at fixed $p$: $J_{ai} = \sum_j p_j\,\partial_iX_{ja}$."""
+        transpose_times = lambda x: self.system.frame_transpose_times(x, args, self.signs, p)  # noqa: E731
         if self.derivative == "autodiff":
-            derivative, value = jax.jacfwd(lambda x: (lambda f: (f, f))(frame(x)), has_aux=True)(q)
-            return value, derivative
+            return jax.jacfwd(transpose_times)(q)
         step = jnp.asarray(self.difference_step, q.dtype)
         offsets = step * jnp.eye(q.shape[0], dtype=q.dtype)
-        differences = jax.vmap(lambda e: (frame(q + e) - frame(q - e)) / (2 * step))(offsets)
-        return frame(q), jnp.moveaxis(differences, 0, -1)
+        differences = jax.vmap(lambda e: (transpose_times(q + e) - transpose_times(q - e)) / (2 * step))(offsets)
+        return differences.T
 
     def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
         r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
@@ -179,20 +184,19 @@ class ReducedSystem(eqx.Module):
 
     def frame_bracket_and_gradient(self, zeta, args):
         r"""$X$, the block $B$ of $\Pi$ and $\nabla\mathcal{H}$ at $\zeta$
-        (`bracket_and_gradient_in_frame`), from one frame derivative."""
+        (`bracket_and_gradient_in_frame`)."""
         q, rho = split_reduced(zeta, self.signs)
-        frame, derivative = self.frame_and_derivative(q, args)
-        return frame, *self.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
+        frame = self.system.frame(q, args, self.signs)
+        return frame, *self.bracket_and_gradient_in_frame(q, rho, frame, args)
 
-    def bracket_and_gradient_in_frame(self, q, rho, frame, derivative, args):
+    def bracket_and_gradient_in_frame(self, q, rho, frame, args):
         r"""The skew block $B$ of $\Pi$ (skewMat) and $\nabla\mathcal{H}$ (eq:Htgrad)
-        at $(q, \rho)$, from the frame and its derivative at $q$
-        (`frame_and_derivative`): how they depend on $\rho$ at fixed $q$, without the
-        QR; with `nhjax._adapted.adapted_structure_times` they give $\Pi v$ without
-        forming $\Pi$. The contraction $\sum_j p_j\,\partial_iX_{ja}$ is formed once for
-        both."""
+        at $(q, \rho)$, given the frame $X$ at $q$; with
+        `nhjax._adapted.adapted_structure_times` they give $\Pi v$ without forming
+        $\Pi$. The frame's derivative enters both through
+        $J = \partial_q(X^Tp)$ (`contracted_frame_derivative`), formed once."""
         p, y = self.momentum_in_frame(q, frame, rho, args)
-        contracted = jnp.einsum("j,jai->ai", p, derivative)
+        contracted = self.contracted_frame_derivative(q, p, args)
         along_frame = contracted @ frame
         if self._identity_metric() and self.derivative == "autodiff":
             grad_q = jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)

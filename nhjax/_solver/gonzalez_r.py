@@ -4,9 +4,12 @@ evaluated from $H$ and $A$ alone.
 **What a step costs.** One chord matrix (`GonzalezR.chord_jacobian`: the field at the
 predictor's midpoint and at $n$ shifted positions, each shift with its own frame and
 frame derivative through the QR, the $\rho$ columns by forward-mode autodiff, and the
-inverse), then about four residuals (the field at the midpoint, and $\mathcal{H}$ at
-$\zeta'$ for the Gonzalez correction). The chord matrix costs several residuals, and
-its $n$ frame derivatives at shifted positions dominate as $n$ grows. Where
+inverse, `nhjax._solver.chord.chord_inverse`), then about four residuals (the field at
+the midpoint, and $\mathcal{H}$ at $\zeta'$ for the Gonzalez correction). The chord
+matrix costs several residuals, and its $n$ frame derivatives at shifted positions
+dominate as $n$ grows. The frame's derivative is only ever needed contracted with $p$,
+as $\partial_q(X^Tp)$ (`nhjax._reduced.ReducedSystem.contracted_frame_derivative`):
+$n$ tangents of $k$ reflections of one vector, not of the $n \times m$ frame. Where
 $\partial H/\partial p$ does not depend on $q$ (checked on its program), the metric is
 a constant (`_metric`); for $M = I$, $\mathcal{H}$ and its gradient need no frame at all
 (`nhjax._reduced.ReducedSystem`), so the Gonzalez correction costs no QR. Under `vmap`
@@ -14,9 +17,11 @@ the predictor's Euler branch runs only at the steps where some trajectory needs 
 (`nhjax._solver._rare_branch.rarely`). Derivatives of a run add, per step, one
 linearisation of the residual (its Jacobian in the unknowns and its derivative along
 the data, `nhjax._solver.base._implicit_root`), whose second derivatives of the frame
-through the QR in $\Pi$ make most of the derivative program. Measured part by part by
-`python benchmarks/_profile.py`, whole steps against the implicit-midpoint yardstick
-and the NumPy route by `python benchmarks/gonzalez_r.py`, derivatives by
+through the QR in $\Pi$ make most of the derivative program. Measured part by part in
+the scaling table of `python benchmarks/suite.py` (`benchmarks/_profile.py`), whole
+steps against the implicit-midpoint yardstick and the NumPy route by
+`python benchmarks/gonzalez_r.py`, against variants of the step by
+`python benchmarks/gonzalez_r_variants.py`, derivatives by
 `python benchmarks/gradients.py` (results in `benchmarks/results/`).
 """
 
@@ -219,15 +224,14 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         $I - \tfrac h2\,S^{-1}\,\partial(\Pi\nabla\mathcal{H})/\partial\zeta\,S$ at
         $\bar\zeta = \zeta + Su/2$, by blocks of columns:
 
-        - the $m$ columns for $\rho$ exactly, by `jax.jacfwd` with the frame and its
-          derivative at $\bar q$ held fixed (they do not depend on $\rho$);
+        - the $m$ columns for $\rho$ exactly, by `jax.jacfwd` with the frame at
+          $\bar q$ held fixed (it does not depend on $\rho$);
         - the $n$ columns for $q$ by forward differences of $\Pi\nabla\mathcal{H}$
           with increments $\sqrt{\varepsilon}(1 + |\bar q_i|)$, evaluated together
           (`vmap`).
 
-        Forward-mode differentiation of the $q$ columns would carry the second
-        derivative of the Householder frame through the QR, an $(n, m, n)$ tensor per
-        tangent. The differences need only $n$ more evaluations of the field, and
+        Forward-mode differentiation of the $q$ columns would carry second
+        derivatives of the Householder frame through the QR. The differences need only $n$ more evaluations of the field, and
         their relative error, $O(\sqrt{\varepsilon})$, changes the chord iteration's
         contraction factor by $O(h\sqrt{\varepsilon})$: the iteration counts are those
         of the exact matrix, and the root is the same. Whole steps are 1.2x faster
@@ -239,17 +243,17 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         midpoint = zeta + 0.5 * scale * u
         q, rho = split_reduced(midpoint, reduced.signs)
 
-        def field(q, rho, frame_and_derivative):
-            frame, derivative = frame_and_derivative
-            bracket, gradient = reduced.bracket_and_gradient_in_frame(q, rho, frame, derivative, args)
-            return adapted_structure_times(frame, bracket, gradient)
+        def field(q, rho, frame):
+            return adapted_structure_times(frame, *reduced.bracket_and_gradient_in_frame(q, rho, frame, args))
 
-        frame_and_derivative = reduced.frame_and_derivative(q, args)
-        at_midpoint = field(q, rho, frame_and_derivative)
+        frame = reduced.system.frame(q, args, reduced.signs)
+        at_midpoint = field(q, rho, frame)
         increments = jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.abs(q))
-        shifted = jax.vmap(lambda x: field(x, rho, reduced.frame_and_derivative(x, args)))(q + jnp.diag(increments))
+        shifted = jax.vmap(lambda x: field(x, rho, reduced.system.frame(x, args, reduced.signs)))(
+            q + jnp.diag(increments)
+        )
         along_q = ((shifted - at_midpoint) / increments[:, None]).T
-        along_rho = jax.jacfwd(lambda r: field(q, r, frame_and_derivative))(rho)
+        along_rho = jax.jacfwd(lambda r: field(q, r, frame))(rho)
         field_jacobian = jnp.concatenate([along_q, along_rho], axis=1)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
 
