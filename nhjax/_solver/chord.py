@@ -32,14 +32,13 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     r"""The inverse of a chord matrix (`nhjax._linalg`): without pivoting where the
     matrix is diagonally dominant, as $I - O(h)$ is for small steps and the methods
     whose unknowns are increments, and with partial pivoting elsewhere (large steps,
-    and GONZALEZ-F, whose multiplier block has a zero diagonal). One trajectory runs
-    one of the two eliminations; under `vmap` the pivoted one runs only at the steps
-    where some trajectory needs it (`rarely`). Cut from differentiation, as the chord
-    matrix is."""
+    and GONZALEZ-F, whose multiplier block has a zero diagonal). Under `vmap` the
+    pivoted elimination runs only at the steps where some trajectory needs it
+    (`rarely`). Cut from differentiation, as the chord matrix is."""
     jacobian = lax.stop_gradient(jacobian)
     if jacobian.shape[0] > UNROLL_LIMIT:
         return inverse(jacobian)
-    return rarely(~is_diagonally_dominant(jacobian), inverse, inverse_without_pivoting, jacobian)
+    return rarely(~is_diagonally_dominant(jacobian), inverse, inverse_without_pivoting(jacobian), jacobian)
 
 
 class _ChordState(eqx.Module):

@@ -56,39 +56,3 @@ def test_under_vmap_each_member_gets_its_branch_and_the_branch_runs_only_when_ne
     assert len(calls) == 1  # no member takes it: not evaluated
     np.testing.assert_array_equal(values, -xs)
     np.testing.assert_array_equal(scales, -jnp.ones(4))
-
-
-def test_a_common_function_is_evaluated_only_where_needed():
-    """`common` as a function: one trajectory evaluates only the branch it takes; a
-    batch evaluates it for all and the rare branch only when some member takes it."""
-    rare_calls, common_calls = [], []
-    rare = _counting(rare_calls)
-
-    def common(operands):
-        x, scale = operands
-        jax.debug.callback(lambda: common_calls.append(1))
-        return jnp.cos(x) * scale, -scale
-
-    x = jnp.array([0.1, 0.2, 0.3])
-    one = jax.jit(lambda taken, x: rarely(taken, rare, common, (x, jnp.asarray(3.0))))
-    values, scale = one(jnp.asarray(False), x)
-    jax.effects_barrier()
-    assert (len(rare_calls), len(common_calls)) == (0, 1)
-    np.testing.assert_allclose(values, 3 * jnp.cos(x), rtol=1e-15)
-    assert float(scale) == -3.0
-    values, scale = one(jnp.asarray(True), x)
-    jax.effects_barrier()
-    assert (len(rare_calls), len(common_calls)) == (1, 1)
-    np.testing.assert_allclose(values, 3 * jnp.sin(x), rtol=1e-15)
-
-    xs = jnp.linspace(0.1, 0.8, 12).reshape(4, 3)
-    batch = jax.jit(jax.vmap(lambda t, x: rarely(t, rare, common, (x, jnp.asarray(3.0)))))
-    some = jnp.array([True, False, False, True])
-    values, scales = batch(some, xs)
-    jax.effects_barrier()
-    assert (len(rare_calls), len(common_calls)) == (2, 2)  # each once, batched
-    np.testing.assert_allclose(values, jnp.where(some[:, None], 3 * jnp.sin(xs), 3 * jnp.cos(xs)), rtol=1e-15)
-    np.testing.assert_array_equal(scales, jnp.where(some, 6.0, -3.0))
-    batch(jnp.zeros(4, dtype=bool), xs)
-    jax.effects_barrier()
-    assert (len(rare_calls), len(common_calls)) == (2, 3)
