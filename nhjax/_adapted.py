@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._linalg import product
+
 
 def adapted_structure(
     frame: Float[Array, "n m"], bracket: Float[Array, "m m"]
@@ -28,7 +30,7 @@ def adapted_structure_times(
     $(X v_\rho,\ -X^T v_q + C v_\rho)$."""
     n = frame.shape[0]
     along_q, along_rho = vector[:n], vector[n:]
-    return jnp.concatenate([frame @ along_rho, bracket @ along_rho - frame.T @ along_q])
+    return jnp.concatenate([product(frame, along_rho), product(bracket, along_rho) - product(along_q, frame)])
 
 
 def momentum_to_adapted(frame, p):

@@ -19,6 +19,7 @@ from jaxtyping import Array, Bool, Float
 
 
 UNROLL_LIMIT = 16
+PRODUCT_LIMIT = 32
 
 
 def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
@@ -78,6 +79,20 @@ def is_diagonally_dominant(a: Float[Array, "n n"]) -> Bool[Array, ""]:
     by_rows = jnp.all(2 * diagonal > jnp.sum(magnitudes, axis=1))
     by_columns = jnp.all(2 * diagonal > jnp.sum(magnitudes, axis=0))
     return by_rows | by_columns
+
+
+def product(a: Float[Array, "*m k"], b: Float[Array, "k *n"]) -> Array:
+    """`a @ b` for a vector or matrix `a` and `b` of the sizes inside a step, as a
+    broadcast multiply and a sum over the shared axis: XLA:CPU fuses that with the
+    operations around it, where a dot is a library call of its own, and batches it
+    under `vmap` as plain vector operations. Above `PRODUCT_LIMIT` along some axis, `@`."""
+    if max(a.shape + b.shape) > PRODUCT_LIMIT:
+        return a @ b
+    if b.ndim == 1:
+        return jnp.sum(a * b, axis=-1)
+    if a.ndim == 1:
+        return jnp.sum(a[:, None] * b, axis=0)
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
 def safe_norm(v: Float[Array, " n"]) -> Float[Array, ""]:

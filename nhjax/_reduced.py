@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._adapted import adapted_structure, adapted_structure_times
-from ._linalg import solve_spd
+from ._linalg import product, solve_spd
 
 
 if TYPE_CHECKING:
@@ -39,7 +39,7 @@ def momentum_in_frame(frame, rho, weighted=None):
     orthonormal frame gives $y = \rho$ and $p = X\rho$ (to rounding; exactly what the
     formula is then taken to mean)."""
     if weighted is None:
-        return frame @ rho, rho
+        return product(frame, rho), rho
     y = solve_spd(frame.T @ weighted, rho)
     return weighted @ y, y
 
@@ -197,11 +197,11 @@ class ReducedSystem(eqx.Module):
         $J = \partial_q(X^Tp)$ (`contracted_frame_derivative`), formed once."""
         p, y = self.momentum_in_frame(q, frame, rho, args)
         contracted = self.contracted_frame_derivative(q, p, args)
-        along_frame = contracted @ frame
+        along_frame = product(contracted, frame)
         if self._identity_metric() and self.derivative == "autodiff":
             grad_q = jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)
         else:
-            grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - y @ contracted
+            grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - product(y, contracted)
         return along_frame - along_frame.T, jnp.concatenate([grad_q, y])
 
     def structure(self, zeta, args) -> Float[Array, "N N"]:

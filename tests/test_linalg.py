@@ -7,7 +7,16 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 
-from nhjax._linalg import inverse, inverse_without_pivoting, is_diagonally_dominant, safe_norm, solve_spd, UNROLL_LIMIT
+from nhjax._linalg import (
+    inverse,
+    inverse_without_pivoting,
+    is_diagonally_dominant,
+    product,
+    PRODUCT_LIMIT,
+    safe_norm,
+    solve_spd,
+    UNROLL_LIMIT,
+)
 
 
 settings.register_profile("nhjax", max_examples=25, deadline=None, derandomize=True)
@@ -33,6 +42,14 @@ def test_inverse_without_pivoting_matches_lapack_on_dominant_matrices(n, seed, b
     np.testing.assert_allclose(
         jax.jit(inverse_without_pivoting)(a), jnp.linalg.inv(a), rtol=1e-10, atol=1e-10 * float(jnp.abs(jnp.linalg.inv(a)).max())
     )
+
+
+@pytest.mark.parametrize("m, k, n", [(3, 2, 4), (7, 6, 7), (1, 5, 1), (PRODUCT_LIMIT + 1, 3, 2)])
+def test_product_is_the_matrix_product(m, k, n):
+    a = jax.random.normal(jax.random.key(m), (m, k))
+    b = jax.random.normal(jax.random.key(n), (k, n))
+    for left, right in ((a, b), (a, b[:, 0]), (a[0], b), (a[0], b[:, 0])):
+        np.testing.assert_allclose(jax.jit(product)(left, right), left @ right, rtol=1e-14, atol=1e-14)
 
 
 def test_diagonal_dominance():
