@@ -82,17 +82,18 @@ def is_diagonally_dominant(a: Float[Array, "n n"]) -> Bool[Array, ""]:
 
 
 def product(a: Float[Array, "*m k"], b: Float[Array, "k *n"]) -> Array:
-    """`a @ b` for a vector or matrix `a` and `b` of the sizes inside a step, as a
-    broadcast multiply and a sum over the shared axis: XLA:CPU fuses that with the
-    operations around it, where a dot is a library call of its own, and batches it
-    under `vmap` as plain vector operations. Above `PRODUCT_LIMIT` along some axis, `@`."""
+    """`a @ b` where `a` or `b` is a vector, for the sizes inside a step, as a broadcast
+    multiply and a sum over the shared axis: XLA:CPU fuses that with the operations
+    around it, where a dot is a library call of its own. (Matrix products stay dots:
+    as broadcasts they made vmapped batches slower; `benchmarks/gonzalez_r.py`.) Above
+    `PRODUCT_LIMIT` along some axis, `@`."""
+    if a.ndim == 2 and b.ndim == 2:
+        raise ValueError("product is for a matrix and a vector; use @ for two matrices.")
     if max(a.shape + b.shape) > PRODUCT_LIMIT:
         return a @ b
     if b.ndim == 1:
         return jnp.sum(a * b, axis=-1)
-    if a.ndim == 1:
-        return jnp.sum(a[:, None] * b, axis=0)
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+    return jnp.sum(a[:, None] * b, axis=0)
 
 
 def safe_norm(v: Float[Array, " n"]) -> Float[Array, ""]:

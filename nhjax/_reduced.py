@@ -197,7 +197,7 @@ class ReducedSystem(eqx.Module):
         $J = \partial_q(X^Tp)$ (`contracted_frame_derivative`), formed once."""
         p, y = self.momentum_in_frame(q, frame, rho, args)
         contracted = self.contracted_frame_derivative(q, p, args)
-        along_frame = product(contracted, frame)
+        along_frame = contracted @ frame
         if self._identity_metric() and self.derivative == "autodiff":
             grad_q = jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)
         else:
