@@ -38,35 +38,26 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
     return solution[:, 0] if vector else solution
 
 
-def inverse(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
-    """$a^{-1}$ by Gauss--Jordan elimination with partial pivoting (rows swapped by a
-    gather per column), for a nonsingular `a`; a singular one gives non-finite entries."""
+def inverse(a: Float[Array, "n n"], pivoting: bool = True) -> Float[Array, "n n"]:
+    """$a^{-1}$ by Gauss--Jordan elimination, with partial pivoting (rows swapped by a
+    gather per column), for a nonsingular `a`; a singular one gives non-finite entries.
+
+    `pivoting=False`: a few fused vector operations per column, without the search and
+    the gather. Stable for a matrix diagonally dominant by rows or by columns
+    (`is_diagonally_dominant`), whose pivots stay away from zero (growth factor at most
+    2: Wilkinson; Higham, *Accuracy and Stability of Numerical Algorithms*, 2nd ed.,
+    Thm. 9.9 and §14.4); otherwise a pivot may vanish, and the entries are then
+    non-finite or wrong."""
     n = a.shape[0]
     if n > UNROLL_LIMIT:
         return jnp.linalg.inv(a)
     augmented = jnp.concatenate([a, jnp.eye(n, dtype=a.dtype)], axis=1)
     rows = jnp.arange(n)
     for j in range(n):
-        pivot = j + jnp.argmax(jnp.abs(augmented[j:, j]))
-        order = jnp.where(rows == j, pivot, jnp.where(rows == pivot, j, rows))
-        augmented = augmented[order]
-        row = augmented[j] / augmented[j, j]
-        augmented = (augmented - jnp.outer(augmented[:, j], row)).at[j].set(row)
-    return augmented[:, n:]
-
-
-def inverse_without_pivoting(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
-    """$a^{-1}$ by Gauss--Jordan elimination without pivoting: a few fused vector
-    operations per column where `inverse` adds a search and a row gather. Stable for
-    a matrix diagonally dominant by rows or by columns (`is_diagonally_dominant`),
-    whose pivots stay away from zero (growth factor at most 2: Wilkinson; Higham,
-    *Accuracy and Stability of Numerical Algorithms*, 2nd ed., Thm. 9.9 and §14.4);
-    otherwise a pivot may vanish, and the entries are then non-finite or wrong."""
-    n = a.shape[0]
-    if n > UNROLL_LIMIT:
-        return jnp.linalg.inv(a)
-    augmented = jnp.concatenate([a, jnp.eye(n, dtype=a.dtype)], axis=1)
-    for j in range(n):
+        if pivoting:
+            pivot = j + jnp.argmax(jnp.abs(augmented[j:, j]))
+            order = jnp.where(rows == j, pivot, jnp.where(rows == pivot, j, rows))
+            augmented = augmented[order]
         row = augmented[j] / augmented[j, j]
         augmented = (augmented - jnp.outer(augmented[:, j], row)).at[j].set(row)
     return augmented[:, n:]

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
-from .._linalg import inverse, inverse_without_pivoting, is_diagonally_dominant, UNROLL_LIMIT
+from .._linalg import inverse, is_diagonally_dominant, UNROLL_LIMIT
 from ._rare_branch import rarely
 
 
@@ -38,7 +38,7 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     jacobian = lax.stop_gradient(jacobian)
     if jacobian.shape[0] > UNROLL_LIMIT:
         return inverse(jacobian)
-    return rarely(~is_diagonally_dominant(jacobian), inverse, inverse_without_pivoting(jacobian), jacobian)
+    return rarely(~is_diagonally_dominant(jacobian), inverse, inverse(jacobian, pivoting=False), jacobian)
 
 
 class _ChordState(eqx.Module):

@@ -231,12 +231,13 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
           (`vmap`).
 
         Forward-mode differentiation of the $q$ columns would carry second
-        derivatives of the Householder frame through the QR. The differences need only $n$ more evaluations of the field, and
-        their relative error, $O(\sqrt{\varepsilon})$, changes the chord iteration's
-        contraction factor by $O(h\sqrt{\varepsilon})$: the iteration counts are those
-        of the exact matrix, and the root is the same. With `jax.jacfwd` of the simplified
-        residual instead, whole steps take 1.17-1.31x the time on the gearbox, 1.21-1.46x
-        on the $n = 3$ quartic and 1.38-1.62x at $n = 10$ (two runs of
+        derivatives of the Householder frame through the QR. The differences need only
+        $n$ more evaluations of the field, and their relative error,
+        $O(\sqrt{\varepsilon})$, changes the chord iteration's contraction factor by
+        $O(h\sqrt{\varepsilon})$: the iteration counts are those of the exact matrix,
+        and the root is the same. With `jax.jacfwd` of the simplified residual instead,
+        whole steps take 1.17-1.31x the time on the gearbox, 1.21-1.46x on the $n = 3$
+        quartic and 1.38-1.62x at $n = 10$ (two runs of
         `benchmarks/gonzalez_r_variants.py`).
         Derivatives of the root do not use this matrix (see `nhjax._solver.chord`)."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
