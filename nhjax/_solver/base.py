@@ -19,7 +19,7 @@ from jaxtyping import Array, Float, Int, PyTree, Scalar
 
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
-from .chord import chord_inverse, PresetChord
+from .chord import chord_inverse, ChordSolution, PresetChord
 
 
 def unwrapped_system(terms) -> AbstractSystem:
@@ -299,37 +299,27 @@ class AbstractMethod(diffrax.AbstractSolver):
         # The root find runs on constants; its derivatives come from `_implicit_root`.
         guess, fixed_data = lax.stop_gradient(guess), no_gradient(data)
         root_finder = self._root_finder(guess.dtype)
-        options = {}
-        evaluations_finite = jnp.all(jnp.isfinite(guess))
-        singular = jnp.array(False)
-        residual = self.residual
         if isinstance(root_finder, PresetChord):
-            residual = self.root_find_residual
             jacobian = self.chord_jacobian(guess, fixed_data)
             inverse = chord_inverse(jacobian)
-            evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(jacobian))
+            solution = root_finder.solve(self.root_find_residual, guess, fixed_data, inverse, self.root_find_max_steps)
+            evaluations_finite = jnp.all(jnp.isfinite(guess)) & jnp.all(jnp.isfinite(jacobian))
             singular = ~jnp.all(jnp.isfinite(inverse))
-            options["inverse"] = inverse
-        solution = optx.root_find(
-            residual,
-            root_finder,
-            guess,
-            fixed_data,
-            options=options,
-            max_steps=self.root_find_max_steps,
-            throw=False,
-        )
-        if isinstance(root_finder, PresetChord):
-            residual_size = solution.state.residual_size
         else:
-            residual_size = jnp.max(jnp.abs(residual(solution.value, fixed_data)))
-        evaluations_finite = evaluations_finite & jnp.isfinite(residual_size)
+            found = optx.root_find(
+                self.residual, root_finder, guess, fixed_data, max_steps=self.root_find_max_steps, throw=False
+            )
+            residual_size = jnp.max(jnp.abs(self.residual(found.value, fixed_data)))
+            solution = ChordSolution(found.value, found.result, found.stats["num_steps"], residual_size)
+            evaluations_finite = jnp.all(jnp.isfinite(guess))
+            singular = jnp.array(False)
+        evaluations_finite = evaluations_finite & jnp.isfinite(solution.residual_size)
         root = _implicit_root(solution.value, data, residual=self.residual)
         y1, carry = self.complete(root, data)
         failure = step_failure(
             evaluations_finite, all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
         )
-        return y1, solver_state.record(solution.stats["num_steps"], failure, carry), failure, solution.value
+        return y1, solver_state.record(solution.steps, failure, carry), failure, solution.value
 
 
 @eqx.filter_jit

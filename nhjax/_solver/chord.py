@@ -49,6 +49,17 @@ class _ChordState(eqx.Module):
     steps: Int[Array, ""]
 
 
+class ChordSolution(eqx.Module):
+    """The end of a chord iteration (`PresetChord.solve`): the last iterate, the
+    optimistix code, the iterations taken, and the size of the last residual evaluated
+    (in units of `atol`), non-finite where the function returned NaN or inf."""
+
+    value: Float[Array, " n"]
+    result: optx.RESULTS
+    steps: Int[Array, ""]
+    residual_size: Scalar
+
+
 class PresetChord(optx.AbstractRootFinder):
     r"""PresetChord iteration for a root of `fn(u, args)`, `u` a 1-D array.
 
@@ -134,3 +145,49 @@ class PresetChord(optx.AbstractRootFinder):
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         del fn, args, options, state, tags, result
         return y, aux, {}
+
+    def solve(
+        self, fn, y0: Float[Array, " n"], args, inverse: Float[Array, "n n"], max_steps: int
+    ) -> ChordSolution:
+        """The iteration for a root of `fn(u, args)` (no auxiliary output) from `y0`
+        with the inverse Jacobian approximation `inverse`: the iterates, codes and
+        counts of `optimistix.root_find(fn, self, y0, args, options=dict(inverse=...),
+        max_steps=max_steps, throw=False)`, including
+        `optimistix.RESULTS.nonlinear_max_steps_reached` and `nonfinite` for a
+        non-finite iterate, computed by a plain `lax.while_loop`.
+
+        The loop carries only what changes: the inverse, which does not, stays outside
+        it. Under `vmap` a while loop's body ends with a select between the old and the
+        new carry of every trajectory, and carrying the inverse (as optimistix's
+        solver state does) would copy an n-by-n matrix per trajectory per iteration;
+        `benchmarks/gonzalez_r.py` measures the batch. No derivatives flow through the
+        loop: its inputs are constants, and the methods differentiate the root by the
+        implicit function theorem."""
+        fn_with_aux = lambda u, a: (fn(u, a), None)
+        state = self.init(fn_with_aux, y0, args, dict(inverse=inverse), None, None, frozenset())
+        inverse = state.inverse
+
+        def terminate_and_result(y, state):
+            terminate, result = self.terminate(fn_with_aux, y, args, None, state, frozenset())
+            return terminate, optx.RESULTS.where(jnp.all(jnp.isfinite(y)), result, optx.RESULTS.nonfinite)
+
+        def cond(carry):
+            _, state, terminate, result = carry
+            return ~terminate & (result == optx.RESULTS.successful) & (state.steps < max_steps)
+
+        def body(carry):
+            y, state, _, _ = carry
+            new_y, new_state, _ = self.step(fn_with_aux, y, args, None, _with_inverse(state, inverse), frozenset())
+            new_state = _with_inverse(new_state, None)
+            return (new_y, new_state) + terminate_and_result(y, new_state)
+
+        init = (y0, _with_inverse(state, None)) + terminate_and_result(y0, state)
+        y, state, terminate, result = lax.while_loop(cond, body, init)
+        result = optx.RESULTS.where(
+            (result == optx.RESULTS.successful) & ~terminate, optx.RESULTS.nonlinear_max_steps_reached, result
+        )
+        return ChordSolution(y, result, state.steps, state.residual_size)
+
+
+def _with_inverse(state: _ChordState, inverse) -> _ChordState:
+    return eqx.tree_at(lambda s: s.inverse, state, inverse, is_leaf=lambda x: x is None)

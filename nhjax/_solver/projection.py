@@ -239,20 +239,12 @@ class Projection(diffrax.AbstractWrappedSolver):
         guess = jnp.zeros(directions.shape[0], dtype=flat.dtype)
         root_finder = default_root_finder(flat.dtype)
         assert isinstance(root_finder, PresetChord)
-        solution = optx.root_find(
-            _residual,
-            root_finder,
-            guess,
-            fixed,
-            options=dict(inverse=gram_inverse),
-            max_steps=self.root_find_max_steps,
-            throw=False,
-        )
-        converged = (solution.result == optx.RESULTS.successful) & jnp.isfinite(solution.state.residual_size)
+        solution = root_finder.solve(_residual, guess, fixed, gram_inverse, self.root_find_max_steps)
+        converged = (solution.result == optx.RESULTS.successful) & jnp.isfinite(solution.residual_size)
         multipliers = _implicit_root(solution.value, data, residual=_residual)
         y1 = unravel(data.y_tilde + data.directions.T @ multipliers)
         result = first_failure(
             RESULTS.where(all_finite(y_tilde) & all_finite(y1), RESULTS.successful, RESULTS.nonfinite_step),
             RESULTS.where(converged, RESULTS.successful, RESULTS.projection_failed),
         )
-        return y1, solution.stats["num_steps"], result
+        return y1, solution.steps, result
