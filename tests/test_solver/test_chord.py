@@ -1,4 +1,6 @@
-"""The chord root finder: convergence, divergence, and stalls at the rounding floor."""
+"""The chord root finder: convergence, divergence, and stalls at the rounding floor, by
+its own loop (`PresetChord.solve`, what the methods use) and through
+`optimistix.root_find`, which must agree."""
 
 import jax
 import jax.numpy as jnp
@@ -6,17 +8,31 @@ import numpy as np
 import optimistix as optx
 import pytest
 
-from nhjax._solver.chord import chord_inverse, PresetChord, STALL_FACTOR
+from nhjax._solver.chord import chord_inverse, ChordSolution, PresetChord, STALL_FACTOR
 
 
 ATOL = 1e-10
 ROOT = jnp.array([0.3, -1.2, 2.0])
+ROUTES = ["own loop", "optimistix"]
 
 
-def _solve(fn, inverse, max_steps=30):
-    return optx.root_find(
-        fn, PresetChord(atol=ATOL), jnp.zeros(3), options={"inverse": inverse}, max_steps=max_steps, throw=False
+def _through_optimistix(fn, y0, args, inverse, max_steps) -> ChordSolution:
+    solution = optx.root_find(
+        fn, PresetChord(atol=ATOL), y0, args, options={"inverse": inverse}, max_steps=max_steps, throw=False
     )
+    return ChordSolution(solution.value, solution.result, solution.stats["num_steps"], solution.state.residual_size)
+
+
+def _solve(fn, inverse, max_steps=30, route="own loop", y0=None) -> ChordSolution:
+    y0 = jnp.zeros(3) if y0 is None else y0
+    if route == "optimistix":
+        return _through_optimistix(fn, y0, None, inverse, max_steps)
+    return PresetChord(atol=ATOL).solve(fn, y0, None, inverse, max_steps)
+
+
+@pytest.fixture(params=ROUTES)
+def route(request):
+    return request.param
 
 
 def _floor_residual(amplitude):
@@ -26,33 +42,33 @@ def _floor_residual(amplitude):
     return lambda u, args: u - ROOT + amplitude * jnp.where(u > ROOT, 1.0, -1.0)
 
 
-def test_contracting_iteration_converges_to_tolerance():
-    solution = _solve(lambda u, args: u - ROOT + 0.05 * jnp.sin(u - ROOT), jnp.eye(3))
+def test_contracting_iteration_converges_to_tolerance(route):
+    solution = _solve(lambda u, args: u - ROOT + 0.05 * jnp.sin(u - ROOT), jnp.eye(3), route=route)
     assert solution.result == optx.RESULTS.successful
     np.testing.assert_allclose(solution.value, ROOT, rtol=0, atol=ATOL)
 
 
-def test_stall_at_the_rounding_floor_is_accepted_within_the_floor():
+def test_stall_at_the_rounding_floor_is_accepted_within_the_floor(route):
     """Corrections and residuals of 3 tolerances that never shrink: the plain test never
     passes, the stall test accepts the iterate, which is within the error's size."""
     amplitude = 1.5 * ATOL
-    solution = _solve(_floor_residual(amplitude), jnp.eye(3))
+    solution = _solve(_floor_residual(amplitude), jnp.eye(3), route=route)
     assert solution.result == optx.RESULTS.successful
-    assert int(solution.stats["num_steps"]) <= 4
+    assert int(solution.steps) <= 4
     np.testing.assert_allclose(solution.value, ROOT, rtol=0, atol=amplitude * (1 + 1e-6))
 
 
-def test_a_floor_far_above_the_tolerance_still_fails():
-    solution = _solve(_floor_residual(STALL_FACTOR * ATOL), jnp.eye(3))
+def test_a_floor_far_above_the_tolerance_still_fails(route):
+    solution = _solve(_floor_residual(STALL_FACTOR * ATOL), jnp.eye(3), route=route)
     assert solution.result != optx.RESULTS.successful
 
 
-def test_slow_convergence_is_accepted_only_near_the_root():
+def test_slow_convergence_is_accepted_only_near_the_root(route):
     """A poor inverse (contraction c = 0.8) is accepted by the stall test once the
     correction is below STALL_FACTOR tolerances, and the iterate is then within
     STALL_FACTOR * c / (1 - c) tolerances of the root."""
     contraction = 0.8
-    solution = _solve(lambda u, args: u - ROOT, (1 - contraction) * jnp.eye(3), max_steps=200)
+    solution = _solve(lambda u, args: u - ROOT, (1 - contraction) * jnp.eye(3), max_steps=200, route=route)
     assert solution.result == optx.RESULTS.successful
     error = float(jnp.max(jnp.abs(solution.value - ROOT)))
     assert error <= STALL_FACTOR * contraction / (1 - contraction) * ATOL
@@ -60,9 +76,55 @@ def test_slow_convergence_is_accepted_only_near_the_root():
 
 
 @pytest.mark.parametrize("growth", [4.0, jnp.inf])
-def test_growing_or_nonfinite_corrections_are_divergence(growth):
-    solution = _solve(lambda u, args: growth * (u - ROOT) + 1.0, jnp.eye(3))
+def test_growing_or_nonfinite_corrections_are_divergence(growth, route):
+    solution = _solve(lambda u, args: growth * (u - ROOT) + 1.0, jnp.eye(3), route=route)
     assert solution.result == optx.RESULTS.nonlinear_divergence
+    assert bool(jnp.all(jnp.isfinite(solution.value)))  # the last finite iterate
+
+
+def test_too_few_iterations_and_a_nonfinite_start_are_reported(route):
+    slow = _solve(lambda u, args: u - ROOT, 0.5 * jnp.eye(3), max_steps=5, route=route)
+    assert slow.result == optx.RESULTS.nonlinear_max_steps_reached
+    assert int(slow.steps) == 5
+    nan_start = _solve(lambda u, args: u - ROOT, jnp.eye(3), route=route, y0=jnp.full(3, jnp.nan))
+    assert nan_start.result == optx.RESULTS.nonfinite
+
+
+_CASES = {
+    "converging": (lambda u, args: u - ROOT + 0.05 * jnp.sin(u - ROOT), jnp.eye(3), 30),
+    "stalling": (_floor_residual(1.5 * ATOL), jnp.eye(3), 30),
+    "slow": (lambda u, args: u - ROOT, 0.2 * jnp.eye(3), 200),
+    "too slow": (lambda u, args: u - ROOT, 0.5 * jnp.eye(3), 5),
+    "diverging": (lambda u, args: 4.0 * (u - ROOT) + 1.0, jnp.eye(3), 30),
+    "nan residual": (lambda u, args: jnp.where(u[0] > 0.1, jnp.nan, 1.0) * (u - ROOT), jnp.eye(3), 30),
+}
+
+
+@pytest.mark.parametrize("case", list(_CASES))
+def test_own_loop_is_the_optimistix_iteration(case):
+    """The same iterates, codes, counts and last residual size, to the bit, by both
+    routes (jitted, as the methods run them)."""
+    fn, inverse, max_steps = _CASES[case]
+    own = jax.jit(lambda: _solve(fn, inverse, max_steps, "own loop"))()
+    reference = jax.jit(lambda: _solve(fn, inverse, max_steps, "optimistix"))()
+    for field in ("value", "steps", "residual_size"):
+        np.testing.assert_array_equal(getattr(own, field), getattr(reference, field), err_msg=field)
+    assert own.result == reference.result
+
+
+def test_own_loop_under_vmap_gives_each_member_its_own_iteration():
+    """A batch of starts that converge in different numbers of iterations, one of them
+    NaN: each member's root, code and count are those of its own run alone."""
+    fn, inverse = (lambda u, args: u - ROOT + 0.3 * jnp.sin(u - ROOT)), jnp.eye(3)
+    starts = jnp.stack([ROOT + 1e-6, jnp.zeros(3), jnp.full(3, jnp.nan), ROOT - 3.0])
+    batch = jax.jit(jax.vmap(lambda y0: _solve(fn, inverse, y0=y0)))(starts)
+    assert len(set(np.asarray(batch.steps).tolist())) > 2
+    for i, y0 in enumerate(starts):
+        alone = _solve(fn, inverse, y0=y0)
+        np.testing.assert_array_equal(batch.value[i], alone.value)
+        assert int(batch.steps[i]) == int(alone.steps)
+        assert int(batch.result._value[i]) == int(alone.result._value)
+    assert int(batch.result._value[2]) == int(optx.RESULTS.nonfinite._value)
 
 
 def test_chord_inverse_pivots_only_where_needed_also_within_a_batch():
