@@ -50,9 +50,10 @@ class _ChordState(eqx.Module):
 
 
 class ChordSolution(eqx.Module):
-    """The end of a chord iteration (`PresetChord.solve`): the last iterate, the
-    optimistix code, the iterations taken, and the size of the last residual evaluated
-    (in units of `atol`), non-finite where the function returned NaN or inf."""
+    """The end of a root find: the last iterate, the optimistix code, the iterations
+    taken, and the size of the last residual evaluated, non-finite where the function
+    returned NaN or inf (from `PresetChord.solve` in units of `atol`; the methods read
+    only whether it is finite, and give other root finders' results this form too)."""
 
     value: Float[Array, " n"]
     result: optx.RESULTS
