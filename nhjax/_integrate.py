@@ -401,8 +401,85 @@ def _method_outcome(solver_state) -> tuple[RESULTS, dict[str, Array]]:
     return RESULTS.successful, {}
 
 
-@eqx.filter_jit
 def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n_steps, save_every, progress):
+    """The run, differentiated by replay from its stored roots (`nhjax._replay`) where
+    `replays_derivatives` says so, otherwise through diffrax's loop with `adjoint` (or
+    `default_adjoint`'s choice)."""
+    static = dict(n_steps=n_steps, save_every=save_every)
+    if adjoint is None and isinstance(method, AbstractMethod):
+        return _integrate_replaying_derivatives(
+            system, method, y0, dt, t0, args, check_constraint, progress=progress, **static
+        )
+    return _integrate_by_diffrax(system, method, y0, dt, t0, args, check_constraint, adjoint, progress=progress, **static)
+
+
+@eqx.filter_custom_jvp
+def _integrate_replaying_derivatives(system, method, y0, dt, t0, args, check_constraint, *, n_steps, save_every, progress):
+    """The run by diffrax's loop, with the derivatives of `_integrate_differentiably`.
+
+    The derivative rule sits outside the compiled run, so that a derivative program
+    traces only the rule: JAX traces a jitted function's body whole before it
+    differentiates it, and the loop it would trace here is not differentiated."""
+    adjoint = diffrax.RecursiveCheckpointAdjoint()  # never differentiated: the rule replaces it
+    return _integrate_by_diffrax(
+        system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps=n_steps, save_every=save_every, progress=progress
+    )
+
+
+@_integrate_replaying_derivatives.def_jvp
+def _integrate_replaying_derivatives_jvp(primals, tangents, *, n_steps, save_every, progress):
+    del progress
+    differentiable = functools.partial(_integrate_differentiably, n_steps=n_steps, save_every=save_every)
+    return eqx.filter_jvp(differentiable, primals, tangents)
+
+
+@eqx.filter_jit
+def _integrate_differentiably(system, method, y0, dt, t0, args, check_constraint, *, n_steps, save_every):
+    """The run of an nhjax method as its derivatives see it: replayed from its stored
+    roots (`nhjax._replay.replayed_run`) where they fit the budget
+    (`replays_derivatives`), otherwise diffrax's loop with `default_adjoint`."""
+    if replays_derivatives(system, method, y0, args, dt, n_steps):
+        run = functools.partial(replayed_run, n_steps=n_steps, save_every=save_every)
+        return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps=n_steps)
+    adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
+    run = functools.partial(_diffrax_run, adjoint=adjoint, n_steps=n_steps, save_every=save_every, progress=False)
+    return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps=n_steps)
+
+
+@eqx.filter_jit
+def _integrate_by_diffrax(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n_steps, save_every, progress):
+    if adjoint is None:  # chosen here, once per compilation
+        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
+    run = functools.partial(_diffrax_run, adjoint=adjoint, n_steps=n_steps, save_every=save_every, progress=progress)
+    return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps=n_steps)
+
+
+def _diffrax_run(system, method, y_start, dt, t0, args, *, adjoint, n_steps, save_every, progress):
+    """The fixed-step run by `diffrax.diffeqsolve`: `(ts, (ys, observed), final solver
+    state, the run's code, number of steps taken)`."""
+    solution = diffrax.diffeqsolve(
+        system,
+        method,
+        t0=t0,
+        t1=t0 + dt * n_steps,
+        dt0=None,
+        y0=y_start,
+        args=args,
+        saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=_save_observables(system), solver_state=True),
+        stepsize_controller=FixedStepTimes(t0, dt),
+        max_steps=n_steps,
+        adjoint=adjoint,
+        throw=False,
+        progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
+    )
+    steps_taken = jnp.asarray(solution.stats["num_accepted_steps"], dtype=int)
+    method_failure, _ = _method_outcome(solution.solver_state)
+    result = first_failure(method_failure, from_diffrax(solution.result))
+    return solution.ts, solution.ys, solution.solver_state, result, steps_taken
+
+
+def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, *, n_steps) -> Solution:
+    """The checks of the start, then `run`, then the `Solution` of its saves."""
     state_result = system.initial_state_result(y0, args)
     waived = ~check_constraint & (state_result == RESULTS.constraint_violated_initially)
     valid_dt = jnp.isfinite(dt) & (dt > 0)
@@ -428,34 +505,6 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n
     startable = initial_result == RESULTS.successful
     y_start = nan_where_failed(~startable, y0, y0)
 
-    meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
-    replayed = adjoint is None and replays_derivatives(system, method, y0, args, dt, n_steps)
-    if adjoint is None and not replayed:  # chosen here, once per compilation
-        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
-
-    def run(system, method, y_start, dt, t0, args):
-        solution = diffrax.diffeqsolve(
-            system,
-            method,
-            t0=t0,
-            t1=t0 + dt * n_steps,
-            dt0=None,
-            y0=y_start,
-            args=args,
-            saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=_save_observables(system), solver_state=True),
-            stepsize_controller=FixedStepTimes(t0, dt),
-            max_steps=n_steps,
-            adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-            throw=False,
-            progress_meter=meter,
-        )
-        steps_taken = jnp.asarray(solution.stats["num_accepted_steps"], dtype=int)
-        method_failure, _ = _method_outcome(solution.solver_state)
-        result = first_failure(method_failure, from_diffrax(solution.result))
-        return solution.ts, solution.ys, solution.solver_state, result, steps_taken
-
-    if replayed:
-        run = functools.partial(replayed_run, run=run, n_steps=n_steps, save_every=save_every)
     ts, saved, solver_state, run_result, steps_taken = run(system, method, y_start, safe_dt, t0, args)
     _, statistics = _method_outcome(solver_state)
     stats = dict(num_steps=steps_taken)

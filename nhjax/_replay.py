@@ -5,18 +5,20 @@ by $y_{k+1} = G(u_k, y_k)$ (`nhjax._solver.base.AbstractMethod`). A derivative o
 run needs, per step, only the linearisation of $u_k(y_k)$ by the implicit function
 theorem, $\dot u_k = -(\partial_u F)^{-1}\partial_y F\,\dot y_k$, at the root; the
 root finder's iterations, which diffrax's checkpointed reverse loop runs again from
-every checkpoint, contribute nothing to it. So `replayed_run` is the run with its own
-derivative rule (`jax.custom_jvp`):
+every checkpoint, contribute nothing to it. So a run's derivatives come from
+`replayed_run`, which `nhjax.integrate` differentiates in place of its diffrax loop
+(its own derivative rule, `jax.custom_jvp`, runs the loop without derivatives and
+`replayed_run` with them):
 
-- **without derivatives**, the diffrax loop of `nhjax.integrate`, unchanged;
-- **with derivatives** (forward and reverse mode), a `lax.scan` of the method's steps
-  that keeps each step's root $u_k$ and nothing else (`AbstractMethod.solve_step`),
-  then the tangent of a second scan that *replays* the steps from those roots
+- a `lax.scan` of the method's steps without derivatives that keeps each step's root
+  $u_k$ and nothing else (`AbstractMethod.solve_step`);
+- a second scan that *replays* the steps from those roots
   (`AbstractMethod.replay_step`: the step's setup and completion, and $u_k$ with its
-  implicit-function derivatives). Reverse mode transposes that tangent scan; its body
-  is rematerialised (`jax.checkpoint`), so what a run stores per step is $u_k$ and
-  the replay's state and carry, and what its backward pass computes per step is one
-  replay, its linearisation and the transpose, never a root find.
+  implicit-function derivatives), whose tangent forward mode computes. Reverse mode
+  transposes that tangent scan; its body is rematerialised (`jax.checkpoint`), so what
+  a run stores per step is $u_k$ and the replay's state and carry, and what its
+  backward pass computes per step is one replay, its linearisation and the transpose,
+  never a root find.
 
 The replay repeats the recorded step's arithmetic on the same values, so its states
 are the run's states; it steps to the same times $t_0 + k\,\Delta t$ as
@@ -28,9 +30,7 @@ run and against diffrax's checkpointed adjoints.
 """
 
 import math
-from collections.abc import Callable
 
-import equinox as eqx
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
@@ -53,12 +53,16 @@ def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, arg
     """Bytes per step that a derivative through `replayed_run` keeps: the step's root
     and the replay's state and carry."""
 
-    def first_step():
-        state = method.init(system, 0 * dt, dt, y0, args)
-        return state, method.solve_step(system, dt, y0, args, state)[3]
+    carry, root = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y0, dt, args))
+    return tree_bytes((y0, carry, root))
 
-    state, root = jax.eval_shape(first_step)
-    return tree_bytes((y0, state.carry, root))
+
+def _first_carry_and_unknowns(system, method, y0, dt, args):
+    """The carry and the initial guess of a run's first step: the guess has the shape
+    of every step's root. Traced for shapes only, and cheaper to trace than a whole
+    step (no root find)."""
+    carry = method.initial_carry(system, y0, args)
+    return carry, method.setup(system, dt, y0, args, carry)[0]
 
 
 def _step_time(t0, dt, k):
@@ -78,7 +82,7 @@ def _record(system, method, y_start, dt, t0, args, n_steps):
     NaN."""
     y_start, dt, t0, args = lax.stop_gradient((y_start, dt, t0, args))
     state = method.init(system, t0, _step_time(t0, dt, jnp.array(1)), y_start, args)
-    root_shape = jax.eval_shape(lambda: method.solve_step(system, dt, y_start, args, state)[3])
+    root_shape = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y_start, dt, args)[1])
 
     def step(carry, k):
         y, state = carry
@@ -142,30 +146,15 @@ def _save_times(dt, t0, taken, *, save_every):
     return jnp.where(reached, _step_time(t0, dt, steps), jnp.inf)
 
 
-@eqx.filter_custom_jvp
-def replayed_run(system, method, y_start, dt, t0, args, *, run: Callable, n_steps: int, save_every: int):
-    """`run(system, method, y_start, dt, t0, args)`, the diffrax loop, which returns
+def replayed_run(system, method, y_start, dt, t0, args, *, n_steps: int, save_every: int):
+    """The run of `n_steps` fixed steps as `nhjax.integrate`'s diffrax loop returns it,
     `(ts, (ys, observed), final method state, the run's code, number of steps taken)`,
-    with the derivatives of the replay from stored roots (see the module docstring)."""
-    return run(system, method, y_start, dt, t0, args)
-
-
-@replayed_run.def_jvp
-def _replayed_run_jvp(primals, tangents, *, run, n_steps, save_every):
-    del run
-    system, method, y_start, dt, t0, args = primals
+    computed for derivatives: the steps by the root finder without derivatives
+    (`_record`), then the saves of the steps replayed from their roots, which carry the
+    derivatives (see the module docstring)."""
     roots, succeeded, taken, final_state = _record(system, method, y_start, dt, t0, args, n_steps)
-
-    def saves(system, method, y_start, dt, t0, args):
-        ts = _save_times(dt, t0, taken, save_every=save_every)
-        saved = _replayed_saves(
-            system, method, y_start, dt, t0, args, roots, succeeded, save_every=save_every
-        )
-        return ts, saved
-
-    (ts, saved), (ts_tangent, saved_tangent) = eqx.filter_jvp(saves, primals, tangents)
+    ts = _save_times(dt, t0, taken, save_every=save_every)
+    saved = _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, save_every=save_every)
     # The run's code from the method's state, as the diffrax loop reports it (a step
     # that fails is the loop's only way to stop early).
-    out = (ts, saved, final_state, final_state.failure, jnp.sum(taken, dtype=int))
-    no_tangent = jax.tree.map(lambda _: None, out[2:])
-    return out, (ts_tangent, saved_tangent, *no_tangent)
+    return ts, saved, final_state, final_state.failure, jnp.sum(taken, dtype=int)
