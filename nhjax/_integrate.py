@@ -5,13 +5,26 @@ vector field (`integrate_adaptive`), the non-geometric baseline and the tests' r
 **What a step costs.** For the implicit methods, the method's root find: for GONZALEZ-R
 the chord matrix and about four residuals (see `nhjax._solver.gonzalez_r`); around it
 the loop adds diffrax's bookkeeping and, at each save, the energy and constraint
-residual. Derivatives of a run with an nhjax method come from its stored roots
+residual. In the compiled program of 2000 GONZALEZ-R steps on the gearbox saved once
+(`benchmarks/gradients.py`'s loss; 6029 HLO instructions) the step is 1952
+instructions and diffrax's loop around it 218; outside the loop, diffrax's end-time
+clipping ($t_1$ less 100 ulps, one `prevbefore` after another) is 1504 and the checks
+of the start and the saves about 1250, which cost compile time only. Run time goes to
+the step: the same steps in a bare `lax.scan` take about 0.9 times as long
+(`python benchmarks/gonzalez_r.py`).
+
+Derivatives of a run with an nhjax method come from its stored roots
 (`nhjax._replay`): the run once by the root finder, keeping each step's root, then per
 step one replay of the step from its root and the transpose (reverse mode) or the
 tangent (forward mode) of its linearisation, with no root finder in the derivative.
-`python benchmarks/gradients.py` measures the time and peak memory of a gradient
-against the forward run, and against diffrax's checkpointed adjoints;
-`python benchmarks/suite.py` the forward steps of every method.
+The derivative rule wraps the compiled run, so that the derivative program of a replayed
+run never traces diffrax's loop. For the loss above, the reverse-mode program is 10240 instructions:
+the recording scan 2380 (the step and its bookkeeping) and the replay's linearisation
+and transpose most of the rest; it runs in about 3 times the forward run, forward mode
+(`jax.jacfwd`, 6 tangents) likewise. `python benchmarks/gradients.py` measures the
+time, compile time and peak memory of both against the forward run, and against
+diffrax's checkpointed adjoints; `python benchmarks/suite.py` the forward steps of
+every method.
 """
 
 import functools
