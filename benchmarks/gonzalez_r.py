@@ -6,7 +6,8 @@
 - The n = 3 chaotic quartic: GONZALEZ-R on the canonical system against
   DiscreteGradient on the analytic reduced form, target at most 3x.
 - Both against GONZALEZ-R in NumPy with one `scipy.optimize.fsolve` per step
-  (`peers.py`), target at least 100x faster.
+  (`peers.py`), timed in each round right after the JAX run, target at least 100x
+  faster.
 - A vmapped batch of 200 gearbox trajectories: trajectory-steps/s against the vmapped
   yardstick, target at most 2x slower, and no trajectory failing; the quartic batch
   beside it.
@@ -60,11 +61,23 @@ def main():
     quartic_steps = options.steps // 4
 
     single, quartic_pairs, batch_pairs = [], [], []
+    numpy_pairs = dict(gearbox=[], quartic_n3=[])
+    numpy_starts = dict(gearbox=(peers.GEARBOX, y0), quartic_n3=(peers.QUARTIC3, quartic_y0))
+
+    def numpy_us_per_step(name):
+        problem, start = numpy_starts[name]
+        q0, p0 = (np.asarray(leaf) for leaf in start)
+        return statistics.median(
+            peers.gonzalez_r_numpy(problem, q0, p0, 0.1, options.numpy_steps)["seconds"] / options.numpy_steps * 1e6
+            for _ in range(max(1, options.repeats // 2))
+        )
+
     gearbox_states = jax.vmap(gearbox.random_initial_state)(jax.random.split(jax.random.key(1), options.batch))
     for _ in range(options.rounds):
         yard_us = yardstick(options.steps, options.repeats)
         gr_us, compile_s, iterations = per_step(gearbox.canonical, method, y0, options.steps, options.repeats)
         single.append((gr_us, yard_us))
+        numpy_pairs["gearbox"].append((numpy_us_per_step("gearbox"), gr_us))
         dg_us, dg_compile_s, dg_iterations = per_step(
             quartic.adapted, nh.DiscreteGradient(), x0, quartic_steps, options.repeats
         )
@@ -72,12 +85,15 @@ def main():
             quartic.canonical, method, quartic_y0, quartic_steps, options.repeats
         )
         quartic_pairs.append((quartic_us, dg_us))
+        numpy_pairs["quartic_n3"].append((numpy_us_per_step("quartic_n3"), quartic_us))
         yard_rate = yardstick(options.batch_steps, options.repeats, batch=options.batch)
         gr_rate, failed = batch_rate(gearbox.canonical, method, gearbox_states, options.batch_steps, options.repeats)
         batch_pairs.append((yard_rate, gr_rate))
         print(f"round: gearbox {gr_us:.2f} µs/step, yardstick {yard_us:.2f} ({gr_us / yard_us:.2f}x); "
               f"quartic {quartic_us:.2f} against DiscreteGradient {dg_us:.2f} ({quartic_us / dg_us:.2f}x); "
-              f"batch {gr_rate:.3e} against {yard_rate:.3e} ({yard_rate / gr_rate:.2f}x slower), {failed} failed")
+              f"batch {gr_rate:.3e} against {yard_rate:.3e} ({yard_rate / gr_rate:.2f}x slower), {failed} failed; "
+              f"NumPy + fsolve {_median_ratio(numpy_pairs['gearbox'][-1:]):.0f}x and "
+              f"{_median_ratio(numpy_pairs['quartic_n3'][-1:]):.0f}x slower")
 
     bare_us = bare_loop_per_step(gearbox.canonical, method, y0, options.steps, options.repeats)
     finite_us, finite_compile_s, finite_iterations = per_step(
@@ -86,14 +102,6 @@ def main():
     direct_us, direct_compile_s, direct_iterations = per_step(
         gearbox.canonical, nh.GonzalezF(), y0, options.steps, options.repeats
     )
-
-    numpy_us = {}
-    for name, problem, start in (("gearbox", peers.GEARBOX, y0), ("quartic_n3", peers.QUARTIC3, quartic_y0)):
-        q0, p0 = (np.asarray(leaf) for leaf in start)
-        numpy_us[name] = statistics.median(
-            peers.gonzalez_r_numpy(problem, q0, p0, 0.1, options.numpy_steps)["seconds"] / options.numpy_steps * 1e6
-            for _ in range(max(1, options.repeats // 2))
-        )
 
     quartic_batch = jax.vmap(lambda key: quartic.from_adapted(quartic.initial_state(0.7) + 0.01 * jax.random.normal(
         key, x0.shape, x0.dtype)))(jax.random.split(jax.random.key(2), options.batch))
@@ -123,7 +131,8 @@ def main():
             gonzalez_r=dict(
                 us_per_step=gr_us, yardstick_us_per_step=statistics.median(b for _, b in single),
                 ratio_to_yardstick=_median_ratio(single), target_ratio=2.5,
-                numpy_fsolve_us_per_step=numpy_us["gearbox"], numpy_speedup=numpy_us["gearbox"] / gr_us,
+                numpy_fsolve_us_per_step=statistics.median(a for a, _ in numpy_pairs["gearbox"]),
+                numpy_speedup=_median_ratio(numpy_pairs["gearbox"]),
                 target_numpy_speedup=100.0,
                 compile_s=compile_s, root_find_iterations_per_step=iterations,
                 bare_scan_us_per_step=bare_us,
@@ -150,7 +159,8 @@ def main():
             gonzalez_r_us_per_step=quartic_us,
             discrete_gradient_reduced_us_per_step=statistics.median(b for _, b in quartic_pairs),
             ratio=_median_ratio(quartic_pairs), target_ratio=3.0,
-            numpy_fsolve_us_per_step=numpy_us["quartic_n3"], numpy_speedup=numpy_us["quartic_n3"] / quartic_us,
+            numpy_fsolve_us_per_step=statistics.median(a for a, _ in numpy_pairs["quartic_n3"]),
+            numpy_speedup=_median_ratio(numpy_pairs["quartic_n3"]),
             root_find_iterations_per_step=dict(gonzalez_r=quartic_iterations, discrete_gradient=dg_iterations),
             compile_s=dict(gonzalez_r=quartic_compile_s, discrete_gradient=dg_compile_s),
             batch=dict(trajectories=options.batch, trajectory_steps_per_s=quartic_rate, failed_trajectories=quartic_failed),
