@@ -84,6 +84,22 @@ def trace_floats(args: PyTree) -> PyTree:
     )
 
 
+def in_state_dtype(args: PyTree, dtype) -> PyTree:
+    """`args` with its real floating-point leaves (arrays and Python floats) in `dtype`,
+    the state's: a float64 parameter would otherwise promote a float32 run's states to
+    float64 within a step, which the loop's float32 buffers cannot take. Other leaves
+    are kept as they are."""
+
+    def cast(leaf):
+        if isinstance(leaf, float) or (
+            hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating) and leaf.dtype != dtype
+        ):
+            return jnp.asarray(leaf, dtype=dtype)
+        return leaf
+
+    return jax.tree.map(cast, args)
+
+
 def _is_int(value) -> bool:
     """An integer, not a bool (`True` is an `Integral` but no step count)."""
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
@@ -291,7 +307,8 @@ def integrate(
     - `y0`: the initial state, as the system defines it.
     - `dt`: the step size, > 0. Cast to the dtype of `y0`.
     - `n_steps`: the number of steps, a positive int.
-    - `args`: parameters passed to every function of the system.
+    - `args`: parameters passed to every function of the system. Their real
+        floating-point leaves are cast to the dtype of `y0`, as `dt` is.
     - `save_every`: save every this many steps; must divide `n_steps`.
     - `progress`: show a progress bar (diffrax's tqdm meter; not in the replayed
         runs of derivatives).
@@ -325,7 +342,7 @@ def integrate(
         y0,
         dt,
         t0,
-        trace_floats(args),
+        in_state_dtype(trace_floats(args), dtype),
         jnp.asarray(check_constraint, dtype=bool),
         _checked_adjoint(adjoint),
         n_steps=int(n_steps),
@@ -589,7 +606,7 @@ def integrate_adaptive(
         t0,
         t1,
         save_at,
-        trace_floats(args),
+        in_state_dtype(trace_floats(args), dtype),
         _adjoint_or_default(adjoint),
         rtol=float(rtol),
         atol=float(atol),

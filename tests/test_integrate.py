@@ -336,6 +336,28 @@ def test_adaptive_tolerances_follow_the_dtype():
         np.testing.assert_allclose(single[-1], double[-1], atol=1e-3)
 
 
+def test_float64_parameters_of_a_float32_run_are_cast_to_float32():
+    """A float32 state with float64 parameters in `args` (arrays, as from a float64
+    fit): the run stays float32, the same to the bit as with the parameters cast by
+    hand, at fixed and at adaptive steps. Uncast, a step promoted the state to float64
+    and the loop's float32 buffers refused it with an error naming neither."""
+
+    def hamiltonian(q, p, args):
+        return 0.5 * p @ p + 0.5 * args["stiffness"] * (q[0] ** 2 + q[1] ** 2) + jnp.cos(q[2])
+
+    system = nh.NonholonomicSystem(hamiltonian, GEARBOX.canonical.constraints)
+    y0 = jax.tree.map(lambda y: y.astype(jnp.float32), GEARBOX.random_initial_state(jax.random.key(0)))
+    wide, narrow = {"stiffness": jnp.asarray(1.5, jnp.float64)}, {"stiffness": jnp.asarray(1.5, jnp.float32)}
+    for run in (
+        lambda args: nh.integrate(system, nh.GonzalezR(), y0, 0.1, 20, args=args, save_every=20),
+        lambda args: nh.integrate_adaptive(system, y0, 1.0, args=args),
+    ):
+        cast, by_hand = run(wide), run(narrow)
+        assert cast.ys[0].dtype == cast.energy.dtype == jnp.float32
+        for got, want in zip(jax.tree.leaves(cast.ys), jax.tree.leaves(by_hand.ys)):
+            np.testing.assert_array_equal(got, want)
+
+
 def test_the_readme_lists_every_code_nhjax_sets():
     """Each code nhjax defines, and the adaptive loop's max_steps_reached, has a row in
     the README's Errors table."""

@@ -401,6 +401,23 @@ def test_runs_beyond_the_replay_budget_are_differentiated_through_the_checkpoint
         jax.jacfwd(loss, argnums=1)(same_gearbox, p0)
 
 
+def test_float32_derivatives_agree_with_float64():
+    """Reverse mode through 20 GONZALEZ-R steps from a float32 start: float32
+    derivatives, within a few float32 ulps (relative to the largest) of the float64
+    ones."""
+    y0, args = _gearbox_start()
+
+    def loss(p0, dtype):
+        start = jax.tree.map(lambda y: y.astype(dtype), (y0[0], p0))
+        solution = nh.integrate(GEARBOX, nh.GonzalezR(), start, 0.1, 20, args=args, save_every=20)
+        return jnp.sum(solution.ys[0][-1] ** 2) + jnp.sum(jnp.cos(solution.ys[1][-1]))
+
+    single = jax.grad(loss)(y0[1].astype(jnp.float32), jnp.float32)
+    double = jax.grad(loss)(y0[1], jnp.float64)
+    assert single.dtype == jnp.float32
+    assert _relative(single.astype(jnp.float64), double) <= 100 * float(jnp.finfo(jnp.float32).eps)
+
+
 def test_default_adjoint_checkpoints_every_step_within_its_budget():
     from nhjax._integrate import CHECKPOINT_BUDGET_BYTES, default_adjoint
 
