@@ -17,9 +17,9 @@ Derivatives of a run with an nhjax method come from its stored roots
 (`nhjax._replay`): the run once by the root finder, keeping each step's root, then per
 step one replay of the step from its root and the transpose (reverse mode) or the
 tangent (forward mode) of its linearisation, with no root finder in the derivative.
-The derivative rule wraps the compiled run, so that the derivative program of a replayed
-run never traces diffrax's loop. For the loss above, the reverse-mode program is 10240 instructions:
-the recording scan 2380 (the step and its bookkeeping) and the replay's linearisation
+The derivative rule wraps the compiled run, so that the derivative program of a
+replayed run never traces diffrax's loop. For the loss above, the reverse-mode program
+is 10240 instructions: the recording scan 2380 (the step and its bookkeeping) and the replay's linearisation
 and transpose most of the rest; it runs in about 3 times the forward run, forward mode
 (`jax.jacfwd`, 6 tangents) likewise. `python benchmarks/gradients.py` measures the
 time, compile time and peak memory of both against the forward run, and against
@@ -85,15 +85,13 @@ def trace_floats(args: PyTree) -> PyTree:
 
 
 def in_state_dtype(args: PyTree, dtype) -> PyTree:
-    """`args` with its real floating-point leaves (arrays and Python floats) in `dtype`,
-    the state's: a float64 parameter would otherwise promote a float32 run's states to
+    """`args` (after `trace_floats`) with its real floating-point arrays in `dtype`, the
+    state's: a float64 parameter would otherwise promote a float32 run's states to
     float64 within a step, which the loop's float32 buffers cannot take. Other leaves
     are kept as they are."""
 
     def cast(leaf):
-        if isinstance(leaf, float) or (
-            hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating) and leaf.dtype != dtype
-        ):
+        if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating) and leaf.dtype != dtype:
             return jnp.asarray(leaf, dtype=dtype)
         return leaf
 
@@ -470,9 +468,9 @@ def _integrate_differentiably(system, method, y0, dt, t0, args, check_constraint
     (`replays_derivatives`), otherwise diffrax's loop with `default_adjoint`."""
     if replays_derivatives(system, method, y0, args, dt, n_steps):
         run = functools.partial(replayed_run, n_steps=n_steps, save_every=save_every)
-        return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps=n_steps)
-    adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
-    run = functools.partial(_diffrax_run, adjoint=adjoint, n_steps=n_steps, save_every=save_every, progress=False)
+    else:
+        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
+        run = functools.partial(_diffrax_run, adjoint=adjoint, n_steps=n_steps, save_every=save_every, progress=False)
     return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps=n_steps)
 
 
