@@ -12,29 +12,25 @@ All three share one signature, `dg(f, x, x1, args) -> array shaped like x`, wher
 **Nearly equal points.** Gonzalez (gonzales) and Itoh--Abe (itoAbe) divide a
 difference of `f` by $|x' - x|$. Evaluated as printed, the rounding error of that
 difference, $\epsilon |f|$, is amplified by $1/|x' - x|$: at $|x' - x| = 10^{-10}$ the
-result has lost six digits, and at $x' = x$ it is $0/0$. Newton's first iterates and
-gradients flowing through the root find both visit that regime. So below a switch
+result has lost six digits, and at $x' = x$ it is $0/0$. Small motions (near an
+equilibrium, or a body nearly at rest), Newton's first iterates and gradients flowing
+through the root find all visit that regime. So below a switch
 $|x'_i - x_i| < \tau (1 + |\bar x_i|)$, $\bar x = \tfrac{x + x'}{2}$ (for every $i$,
-in Gonzalez; per coordinate, in Itoh--Abe), where the truncation error
-of a local expansion, $\approx |f^{(5)}||\delta|^5/C$, falls below the rounding error
-$\epsilon|f|$ of the printed formula ($\tau = (C\epsilon)^{1/5}$, about $4\cdot10^{-3}$ in
-float64 and $0.2$ in float32), each uses a form free of cancellation:
+in Gonzalez; per coordinate, in Itoh--Abe), where the truncation error of the two-point
+Gauss--Legendre rule, $\approx |f^{(5)}||\delta|^5/4320$, falls below the rounding error
+$\epsilon|f|$ of the printed formula ($\tau = (4320\epsilon)^{1/5}$, about
+$4\cdot10^{-3}$ in float64 and $0.2$ in float32), each takes the difference of `f`
+from gradients along the segment instead: no subtraction of values, and for Itoh--Abe
+no division.
 
-- Itoh--Abe: the divided difference along coordinate $i$ is the two-point
-  Gauss--Legendre quadrature $\tfrac12[\partial_i f(b + \tfrac{\delta_i}{2\sqrt3}e_i)
-  + \partial_i f(b - \tfrac{\delta_i}{2\sqrt3}e_i)]$ about the segment midpoint $b$
-  ($C = 4320$): gradients only, no subtraction, no division.
-- Gonzalez: the derivatives of the correction term by its Taylor expansion, its
-  value still the printed one (see `gonzalez`, $C = 1920$).
-
-(discGradEn) then holds to roundoff on both sides of the switch, values are continuous
-across it to roundoff, and at $x' = x$ both give $\nabla f(x)$ exactly, with finite and
-accurate derivatives, forward and reverse.
+(discGradEn) then holds to the rounding of $f(x') - f(x)$ on both sides of the switch,
+values are continuous across it to roundoff, and at $x' = x$ both give $\nabla f(x)$
+exactly, with finite and accurate derivatives.
 """
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -43,26 +39,27 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._linalg import safe_norm
+from ._rare_branch import rarely
 
 
 ScalarFunction = Callable[[Float[Array, " N"], Any], Float[Array, ""]]
 
 _GAUSS2_OFFSET = 0.5 / math.sqrt(3.0)
-# Truncation constants C of the local expansions: |f^(5)| |delta|^5 / C.
+# The truncation constant C of the two-point Gauss rule: |f^(5)| |delta|^5 / C.
 _GAUSS2_TRUNCATION = 4320.0
-_TAYLOR_TRUNCATION = 1920.0
 
 
-def _is_near(x, x1, delta, truncation: float):
+def _is_near(x, x1, delta):
     r"""Where $|\delta_i|$ is below the switch $\tau(1 + |\bar x_i|)$,
-    $\tau = (C\epsilon)^{1/5}$: there the expansion's truncation error, $|\delta|^5/C$,
-    is below the cancellation error $\epsilon$ of the printed divided difference.
+    $\tau = (4320\epsilon)^{1/5}$: there the two-point Gauss rule's truncation error,
+    $|\delta|^5/4320$, is below the cancellation error $\epsilon$ of the printed
+    divided difference.
 
     Each coordinate is measured against its own size: a scale common to all (such as
     $1 + |\bar x|_\infty$) would let one large coordinate, a position far from the
-    origin, declare every step of the others "near", and the Taylor branch would then
-    be used for increments it does not resolve."""
-    switch = (truncation * float(jnp.finfo(x.dtype).eps)) ** 0.2
+    origin, declare every step of the others "near", and the quadrature would then be
+    used for increments it does not resolve."""
+    switch = (_GAUSS2_TRUNCATION * float(jnp.finfo(x.dtype).eps)) ** 0.2
     return jnp.abs(delta) < switch * (1.0 + jnp.abs(0.5 * (x + x1)))
 
 
@@ -102,9 +99,9 @@ def _third_directional_derivative(f, x, gradient, direction, args):
     / \varepsilon^2$, with $g(0) = \nabla f(x)^T Sv$.
 
     Its relative error, $\varepsilon^2/12$ from truncation and $\epsilon/\varepsilon^2$
-    from rounding, is about $\sqrt\epsilon$. Where it is used, in the correction term
-    below the switch, the correction is $O(\tau^2)$ and the error it leaves in
-    (discGradEn) is below $10^{-8}\tau^3 |D^3f| < \epsilon$. Nested forward-mode
+    from rounding, is about $\sqrt\epsilon$. It gives only derivatives (of the
+    correction term below the switch, `gonzalez_correction`), never values, so it
+    leaves (discGradEn) as it is. Nested forward-mode
     autodiff would be exact, but the derivatives of the step's root (implicit function
     theorem) would then need fourth derivatives of $f$: for GONZALEZ-R, through the QR
     factorisation, a graph that takes a minute to compile. The difference form needs
@@ -141,27 +138,30 @@ def gonzalez(
     Symmetric in $(x, x')$, so with a symmetric $\tilde\Pi$ the method (E-int) is
     second order.
 
-    **Nearly equal points.** The coefficient of $\delta$ is a quantity of size
-    $|\delta|$ obtained from differences of size $|\delta|$ (or $|f|$), so any formula
-    that forms it by subtraction carries an error $\epsilon/|\delta|$ in the
-    coefficient: harmless in the value, which multiplies it by $\delta$, but not in the
-    derivative, which contains the coefficient itself. Below the switch (module
-    docstring, here $\tau = (1920\epsilon)^{1/5}$) the correction's derivatives are
-    therefore those of its Taylor expansion about $\bar x$,
-    $\tfrac{1}{24} D^3 f(\bar x)[\hat\delta, \hat\delta, \hat\delta]\, |\delta|\,\delta
-    + O(|\delta|^4)$, $\hat\delta = \delta/|\delta|$, with the third derivative from
-    a second difference of directional derivatives at a fixed step (not one of size
-    $|\delta|$, so no cancellation grows as $\delta \to 0$; see
-    `_third_directional_derivative`), while its value stays the printed formula's
-    (the expansion's at $\delta = 0$): the expansion's truncation error has one sign
-    from step to step, and as a value it drifted GONZALEZ-R's energy by $3\cdot10^{-10}$
-    over $2\cdot10^4$ steps of $h = 0.1/17$ on the gearbox, against $10^{-13}$ now.
-    Both forms are evaluated and one selected (`jnp.where`), not branched on
-    (`lax.cond`): every caller in nhjax that uses this form differentiates it (the
-    derivatives of a step's root), and a derivative program through a `lax.cond`
-    carries both branches' linearisations and their saved values, which made the
-    reverse-mode program through a GONZALEZ-R run a quarter larger to compile; a step's
-    values come from `gonzalez_values`, which has no Taylor form.
+    **Nearly equal points.** The difference $f(x') - f(x)$, computed from the two
+    values, carries their rounding, $\epsilon|f|$, which the correction term divides by
+    $|\delta|$: an error of $\epsilon|f|/|\delta|$ in the gradient. Near an equilibrium
+    of a system whose energy is far from zero (a pendulum at rest at its lowest point,
+    $|f| \approx 1$, moving by $|\delta| = 10^{-13}$ per step) that is $10^{-3}$ against a
+    gradient of $10^{-12}$: the step's equations are noise, and no root finder solves
+    them. Below the switch of the module docstring (here $C = 4320$, for every
+    coordinate) the difference is therefore the two-point Gauss--Legendre quadrature of
+    $\nabla f$ along the segment (`segment_difference`), whose error is that of the
+    gradients, $\epsilon|\nabla f||\delta|$, plus a truncation $|\delta|^5/4320$ in
+    units where the derivatives are of size 1; it is taken where it agrees with the
+    difference of the values to four of their roundings, $\epsilon(|f(x)| + |f(x')|)$,
+    which it does wherever the motion is too small for the values to resolve it, and
+    the difference of the values elsewhere (a function periodic in an angle wound far
+    from the origin has derivatives far above 1 in those units). The value and the
+    derivatives come from the form selected: (discGradEn) holds to a few roundings of
+    $f(x') - f(x)$ on both sides of the switch, and at $x' = x$ the result is
+    $\nabla f(x)$ exactly, with finite and accurate derivatives.
+
+    The form is selected by a branch (`lax.cond`), not a select: the quadrature's two
+    gradients, and in derivative programs their linearisation, run only for nearly
+    equal points (under `vmap` a batch evaluates both, as a select would; the methods'
+    root finds, which never differentiate, use `gonzalez_values`, which keeps the
+    quadrature to the steps where some trajectory needs it).
     """
     return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args)
 
@@ -185,14 +185,61 @@ def gonzalez_values(
     x1: Float[Array, " N"],
     args: Any = None,
 ) -> Float[Array, " N"]:
-    r"""The values of `gonzalez`, without its Taylor form for nearly equal points.
+    r"""The values of `gonzalez`, for a caller that never differentiates them (the
+    chord iteration's residual, `nhjax.AbstractMethod.root_find_residual`): the same
+    forms on the same sides of the switch, with the quadrature selected by `rarely`, so
+    that under `vmap` a batch evaluates it only at the calls where some trajectory has
+    nearly equal points. Not differentiable."""
+    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, branch="rarely")
 
-    `gonzalez` takes its value from the printed formula on both sides of the switch and
-    uses the Taylor form only for its derivatives, so the two functions agree in value;
-    this one has no branch, and under `vmap` no third derivative evaluated by every
-    trajectory at every call. For a caller that never differentiates it: the chord
-    iteration's residual (`nhjax.AbstractMethod.root_find_residual`)."""
-    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, taylor=False)
+
+def segment_difference(
+    gradient: Callable[[Float[Array, " N"], Any], Float[Array, " N"]],
+    x: Float[Array, " N"],
+    x1: Float[Array, " N"],
+    args: Any = None,
+) -> Float[Array, ""]:
+    r"""$f(x') - f(x) = \int_0^1 \nabla f(x + \xi\delta)^T\delta\,d\xi$ by the two-point
+    Gauss--Legendre rule, $\tfrac12[\nabla f(\bar x + \tfrac{\delta}{2\sqrt3})
+    + \nabla f(\bar x - \tfrac{\delta}{2\sqrt3})]^T\delta$, from
+    `gradient(z, args)` $= \nabla f(z)$: exact for $f$ polynomial of degree 4 along the
+    segment, with truncation $|D^5f[\delta, \ldots, \delta]|/4320$ otherwise, and free
+    of the cancellation of $f(x') - f(x)$ (its rounding is $\epsilon|\nabla f||\delta|$)."""
+    delta = x1 - x
+    middle = 0.5 * (x + x1)
+    offset = _GAUSS2_OFFSET * delta
+    gradients = jax.vmap(gradient, in_axes=(0, None))(jnp.stack([middle + offset, middle - offset]), args)
+    return 0.5 * (gradients[0] + gradients[1]) @ delta
+
+
+class Gradient(eqx.Module):
+    """$\\nabla f$ as a callable pytree, `Gradient(f)(x, args)`: `f`'s arrays (a bound
+    method's module) are leaves, so that it can be handed to a branch as an operand."""
+
+    f: ScalarFunction
+
+    def __call__(self, x, args):
+        return jax.grad(self.f)(x, args)
+
+
+Branch = Literal["cond", "rarely", "printed"]
+
+
+# How far, in roundings of the two values, the quadrature may stray from the printed
+# difference and still be taken: beyond that its truncation shows.
+_AGREEMENT = 4.0
+
+
+def _validated_difference(operands):
+    r"""The quadrature's difference (`segment_difference`) where it agrees with the
+    printed one to `_AGREEMENT` times the printed one's rounding, $\epsilon(|f(x)| +
+    |f(x')|)$; the printed one where it does not, which is where the quadrature's
+    truncation is above rounding (the switch of `_is_near` assumes derivatives of
+    size 1 in units of $1 + |x_i|$, which fails for a function periodic in a coordinate
+    far from the origin, such as an angle wound up over a long run)."""
+    gradient, x, x1, args, printed, rounding = operands
+    difference = segment_difference(gradient, x, x1, args)
+    return jnp.where(jnp.abs(difference - printed) <= _AGREEMENT * rounding, difference, printed)
 
 
 def gonzalez_correction(
@@ -202,49 +249,66 @@ def gonzalez_correction(
     x1: Float[Array, " N"],
     args: Any = None,
     *,
+    branch: Branch = "cond",
     taylor: bool = True,
     f_x: Float[Array, ""] | None = None,
+    f_x1: Float[Array, ""] | None = None,
+    segment: tuple | None = None,
 ) -> Float[Array, " N"]:
-    r"""$g + \frac{f(x') - f(x) - g^T\delta}{|\delta|^2}\delta$ for a given midpoint
-    gradient $g$: (gonzales) when $g = \nabla f(\bar x)$. `f_x`: $f(x)$, if the caller
-    has it (a root find evaluates this with one $x$ and many $x'$).
+    r"""$g + \frac{D - g^T\delta}{|\delta|^2}\delta$ for a given midpoint gradient $g$,
+    with $D = f(x') - f(x)$: (gonzales) when $g = \nabla f(\bar x)$; (discGradEn),
+    $\bar\nabla f^T\delta = D$, holds for any $g$.
 
-    (discGradEn) holds for any $g$. With `taylor=True`, $g$ must be $\nabla f(\bar x)$
-    and nearly equal points use the Taylor form of `gonzalez` for the derivatives. With
-    `taylor=False` the printed formula is used down to $\delta = 0$, where the value is
-    $g$: the same values, with derivatives that lose accuracy as $\epsilon/|\delta|^2$
-    for nearly equal points; for an approximate $g$ (GONZALEZ-R with finite
-    differences, where no expansion applies) and for callers that never differentiate
-    the result (`gonzalez_values`).
+    $D$ is the difference of the values `f_x1 - f_x` (each computed here where not
+    given) or, for nearly equal points, `segment_difference(*segment, args)` (by
+    default `segment = (Gradient(f), x, x1)`) where it agrees with the values'
+    difference to a few roundings (`_validated_difference`), as `gonzalez` describes.
+
+    `branch`: `"cond"` (differentiable), `"rarely"` (values only,
+    `nhjax._rare_branch`), or `"printed"`: the difference of the values down to
+    $\delta = 0$, where the result is $g$. With `"cond"` and `taylor=True` ($g$ must
+    then be $\nabla f(\bar x)$), where the quadrature is taken the correction's
+    derivatives are those of its Taylor expansion about $\bar x$,
+    $\tfrac{1}{24}D^3f(\bar x)[\hat\delta, \hat\delta, \hat\delta]|\delta|\delta$
+    (`_third_directional_derivative`), its value the quadrature's: the quadrature's own
+    derivative forms the coefficient $(D - g^T\delta)/|\delta|^2$ from gradients
+    $|\delta|$ apart, an error of $\epsilon|\nabla f|/|\delta|$ in the discrete
+    gradient's Jacobian ($10^{-6}$ at $|\delta| = 10^{-10}$). With `taylor=False` (an
+    approximate $g$, GONZALEZ-R with finite differences) the derivatives are the
+    selected form's own.
     """
     delta = x1 - x
     squared_length = delta @ delta
     zero = squared_length == 0
-    numerator = f(x1, args) - (f(x, args) if f_x is None else f_x) - gradient @ delta
-    printed = (numerator / jnp.where(zero, 1.0, squared_length)) * jnp.where(zero, 0.0, delta)
-    if not taylor:
-        return gradient + printed
-    # A branch, not a select: the expansion's third derivative, and in derivative
-    # programs its linearisation, run only for nearly equal points (under `vmap` a
-    # batch still evaluates both, as a select would).
-    near = jnp.all(_is_near(x, x1, delta, _TAYLOR_TRUNCATION))
-    return gradient + jax.lax.cond(near, lambda: _taylor_form(f, gradient, x, x1, delta, printed, args), lambda: printed)
+    f_x = f(x, args) if f_x is None else f_x
+    f_x1 = f(x1, args) if f_x1 is None else f_x1
+    printed = f_x1 - f_x
 
+    def correction(difference):
+        numerator = difference - gradient @ delta
+        return (numerator / jnp.where(zero, 1.0, squared_length)) * jnp.where(zero, 0.0, delta)
 
-def _taylor_form(f, gradient, x, x1, delta, printed, args):
-    """The correction term of `gonzalez_correction` for nearly equal points: the
-    printed value, with the derivatives of its Taylor expansion."""
-    length = safe_norm(delta)
-    direction = delta / jnp.where(length == 0, 1.0, length)
-    third = _third_directional_derivative(f, 0.5 * (x + x1), gradient, direction, args)
-    expansion = (third * length / 24.0) * delta
-    # The value is the printed formula's, the derivatives the expansion's: the
-    # expansion's truncation error, though below the rounding of the printed formula at
-    # the switch, has one sign step after step, and over 10^4 steps and more it would
-    # drift the energy; the printed value keeps (discGradEn) to rounding, and its
-    # cancellation, an error of eps |f| / |delta| in the gradient, moves the step by
-    # rounding only (the step is h times it, and |delta| = O(h)).
-    return expansion + jax.lax.stop_gradient(printed - expansion)
+    if branch == "printed":
+        return gradient + correction(printed)
+    rounding = jax.lax.stop_gradient(float(jnp.finfo(x.dtype).eps) * (jnp.abs(f_x) + jnp.abs(f_x1)))
+    operands = ((Gradient(f), x, x1) if segment is None else segment) + (args, printed, rounding)
+    near = jnp.all(_is_near(x, x1, delta))
+    if branch == "rarely":
+        return gradient + correction(rarely(near, _validated_difference, printed, operands))
+
+    def near_correction():
+        difference = _validated_difference(operands)
+        value = correction(difference)
+        if not taylor:
+            return value
+        length = safe_norm(delta)
+        direction = delta / jnp.where(length == 0, 1.0, length)
+        third = _third_directional_derivative(f, 0.5 * (x + x1), gradient, direction, args)
+        expansion = (third * length / 24.0) * delta
+        quadrature_taken = difference != printed
+        return jnp.where(quadrature_taken, expansion + jax.lax.stop_gradient(value - expansion), value)
+
+    return gradient + jax.lax.cond(near, near_correction, lambda: correction(printed))
 
 
 def itoh_abe(
@@ -269,7 +333,7 @@ def itoh_abe(
     corners = jnp.where(from_new, x1[None, :], x[None, :])
     values = jax.vmap(f, in_axes=(0, None))(corners, args)
     delta = x1 - x
-    near = _is_near(x, x1, delta, _GAUSS2_TRUNCATION)
+    near = _is_near(x, x1, delta)
     printed = (values[1:] - values[:-1]) / jnp.where(near, 1.0, delta)
 
     segment_midpoints = corners[:-1].at[index, index].set(0.5 * (x + x1))

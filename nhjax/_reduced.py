@@ -167,6 +167,43 @@ class ReducedSystem(eqx.Module):
         q, p = self.from_reduced(zeta, args)
         return self.system.hamiltonian(q, p, args)
 
+    def start_of_step(self, zeta, args):
+        r"""What `energy_segment` needs of a step's start $\zeta$:
+        $\mathcal{H}(\zeta)$, and the canonical momentum $p(\zeta)$ (`None` for
+        $M = I$, whose $\mathcal{H}$ needs none)."""
+        if self._identity_metric():
+            return self.hamiltonian(zeta, args), None
+        q, p = self.from_reduced(zeta, args)
+        return self.system.hamiltonian(q, p, args), p
+
+    def energy_segment(self, zeta, momentum, zeta1, args):
+        r"""$\mathcal{H}(\zeta')$, and a segment with a gradient along it whose integral
+        is $\mathcal{H}(\zeta') - \mathcal{H}(\zeta)$, for that difference without the
+        cancellation of the two values (`nhjax._discrete_gradient.segment_difference`):
+        `(value, (gradient, start, end))`, `gradient(z, args)` a callable pytree. The
+        gradients need no frame derivative: for $M = I$ the segment is in $\zeta$,
+        $\nabla\mathcal{H} = (\partial_qH(q, 0), \rho)$; otherwise it runs from
+        $(q, p)$ to $(q', p')$ in canonical coordinates, $p$ = `momentum` and
+        $p' = p(\zeta')$, with $\nabla H$ of the user's $H$ ($\mathcal{H}(\zeta) =
+        H(q, p(\zeta))$, so the two differences are one; the frame at $q'$ that $p'$
+        needs is the one $\mathcal{H}(\zeta')$ needs anyway)."""
+        if self._identity_metric():
+            return self.hamiltonian(zeta1, args), (self.reduced_gradient, zeta, zeta1)
+        q, _ = split_reduced(zeta, self.signs)
+        q1, p1 = self.from_reduced(zeta1, args)
+        start, end = jnp.concatenate([q, momentum]), jnp.concatenate([q1, p1])
+        return self.system.hamiltonian(q1, p1, args), (self.canonical_gradient, start, end)
+
+    def reduced_gradient(self, zeta, args) -> Float[Array, " N"]:
+        r"""$\nabla\mathcal{H}(\zeta)$ by autodiff of `hamiltonian` (for $M = I$ it needs
+        no frame)."""
+        return jax.grad(self.hamiltonian)(zeta, args)
+
+    def canonical_gradient(self, z, args) -> Float[Array, " 2n"]:
+        r"""$\nabla H(q, p)$ of the user's $H$ at $z = (q, p)$."""
+        n = z.shape[0] // 2
+        return jnp.concatenate(jax.grad(self.system.hamiltonian, argnums=(0, 1))(z[:n], z[n:], args))
+
     def contracted_frame_derivative(self, q, p, args) -> Float[Array, "m n"]:
         r"""$J = \partial_q(X(q)^Tp)$ at fixed $p$: $J_{ai} = \sum_j p_j\,\partial_iX_{ja}$."""
         transpose_times = lambda x: self.system.frame_transpose_times(x, args, self.signs, p)  # noqa: E731

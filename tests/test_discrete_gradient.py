@@ -118,9 +118,11 @@ def test_symmetric_gradients_are_midpoint_gradient_to_second_order(dg, function,
 
 
 def test_gonzalez_at_nearly_equal_points_keeps_the_energy_condition_and_accurate_derivatives():
-    """At |x' - x| = 1e-10: the derivative of the formula as printed is lost to
-    cancellation, while nh.gonzalez's (from the Taylor expansion) is Hess/2; its value
-    is the printed one, so that (discGradEn) holds to rounding."""
+    """At |x' - x| = 1e-10: the formula as printed has lost its derivative to
+    cancellation and six digits of its value, while nh.gonzalez, whose difference
+    f(x') - f(x) then comes from gradients along the segment, has the derivative Hess/2
+    and the midpoint gradient to O(|x' - x|^2); (discGradEn) holds to the rounding of
+    f(x') - f(x)."""
     f = lambda x, args: jnp.sin(x[0]) * x[1] ** 3 + jnp.cos(x[1] * x[2])  # noqa: E731
     x = jnp.array([0.3, -0.2, 0.4])
     x1 = x + 1e-10 * jnp.array([1.0, -0.5, 0.2])
@@ -130,12 +132,46 @@ def test_gonzalez_at_nearly_equal_points_keeps_the_energy_condition_and_accurate
         g = jax.grad(f)(m, None)
         return g + (f(x1, None) - f(x, None) - g @ d) / (d @ d) * d
 
+    midpoint = jax.grad(f)(0.5 * (x + x1), None)
     half_hessian = 0.5 * jax.hessian(f)(x, None)
     assert float(jnp.max(jnp.abs(jax.jacfwd(printed)(x1) - half_hessian))) > 1e-2
+    assert float(jnp.max(jnp.abs(printed(x1) - midpoint))) > 1e-8
     derivative = jax.jacfwd(nh.gonzalez, argnums=2)(f, x, x1, None)
     np.testing.assert_allclose(derivative, half_hessian, rtol=0, atol=1e-8)
-    defect = nh.gonzalez(f, x, x1, None) @ (x1 - x) - (f(x1, None) - f(x, None))
-    assert abs(float(defect)) <= 1e-25
+    value = nh.gonzalez(f, x, x1, None)
+    np.testing.assert_allclose(value, midpoint, rtol=0, atol=1e-15)
+    defect = value @ (x1 - x) - (f(x1, None) - f(x, None))
+    rounding = float(jnp.finfo(x.dtype).eps) * (abs(float(f(x, None))) + abs(float(f(x1, None))))
+    assert abs(float(defect)) <= 4 * rounding
+
+
+def test_gonzalez_resolves_motion_below_the_rounding_of_the_values():
+    """f = 1 + |x|^2/2 moved by 1e-13: the values' difference is rounding alone (the
+    motion changes f by 1e-26, eps |f| is 2e-16), yet nh.gonzalez is the gradient at the
+    midpoint to its own rounding, as the exact discrete gradient of a quadratic is; the
+    printed formula loses the gradient's component along the motion entirely."""
+    f = lambda x, args: 1.0 + 0.5 * x @ x  # noqa: E731
+    x = jnp.array([1e-13, -2e-13])
+    x1 = x + jnp.array([1e-13, 2e-13])
+    midpoint = 0.5 * (x + x1)
+    np.testing.assert_allclose(nh.gonzalez(f, x, x1, None), midpoint, rtol=1e-12, atol=0)
+    d = x1 - x
+    printed = midpoint + (f(x1, None) - f(x, None) - midpoint @ d) / (d @ d) * d
+    assert float(jnp.max(jnp.abs(printed - midpoint))) > 0.1 * float(jnp.max(jnp.abs(midpoint)))
+
+
+def test_gonzalez_takes_the_values_where_the_quadrature_truncates():
+    """An angle wound to 6283 (1000 turns), with f = -cos(theta) + theta/10: its
+    increment of 0.15 counts as nearly equal against 1 + |theta| (the switch assumes
+    derivatives of size 1 in those units), but the two-point rule misses the
+    difference by 1e-8; the values' difference, exact to rounding, is taken."""
+    f = lambda x, args: 0.5 * x[1] ** 2 - jnp.cos(x[0]) + 0.1 * x[0]  # noqa: E731
+    x = jnp.array([0.3 + 2 * np.pi * 1000, 1e-4])
+    x1 = x + jnp.array([0.15, 1e-3])
+    change = f(x1, None) - f(x, None)
+    defect = nh.gonzalez(f, x, x1, None) @ (x1 - x) - change
+    rounding = float(jnp.finfo(x.dtype).eps) * (abs(float(f(x, None))) + abs(float(f(x1, None))))
+    assert abs(float(defect)) <= 4 * rounding
 
 
 @pytest.mark.parametrize("dg", [nh.gonzalez, nh.itoh_abe], ids=lambda dg: dg.__name__)

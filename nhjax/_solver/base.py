@@ -136,6 +136,32 @@ class MethodState(AbstractMethodState):
         return dict(root_find_steps=self.total_steps, max_root_find_steps=self.max_steps)
 
 
+# Points are rounded twice per residual (the midpoint and the end), each to half an
+# ulp, and the chord matrix approximates the residual's Jacobian: a margin of 4.
+ROUNDING_FLOOR = 4.0
+
+
+def resolution_of(x: Array, scale: Array) -> Array:
+    r"""$\epsilon|x|/s$: the rounding of $x + su$ in the units of $u$ (see
+    `AbstractMethod.resolution`)."""
+    return lax.stop_gradient(float(jnp.finfo(x.dtype).eps) * jnp.abs(x) / scale)
+
+
+def rounding_floor(jacobian: Float[Array, "u u"], resolution: Float[Array, " u"], scale: Float[Array, " u"]) -> Array:
+    r"""The rounding of a residual caused by the rounding of the points it evaluates
+    the system at (`AbstractMethod.resolution`): $w = |\tilde J|\,r$ row by row,
+    $\tilde J$ the chord matrix, and for the rows of state increments also the largest
+    of these in the state's own units, $\max_j s_jw_j/s_i$: a discrete gradient's
+    correction term, $(\bar\nabla H^T\hat\delta)\hat\delta$, carries the rounding of
+    one component of the midpoint gradient into every component along the increment,
+    which the chord matrix (built without that term) does not show. Times the margin
+    `ROUNDING_FLOOR`."""
+    own = jnp.abs(lax.stop_gradient(jacobian)) @ resolution
+    increments = scale > 0
+    mixed = jnp.max(scale * own) / jnp.where(increments, scale, 1.0)
+    return ROUNDING_FLOOR * (own + jnp.where(increments, mixed, 0.0))
+
+
 def default_root_finder(dtype) -> optx.AbstractRootFinder:
     """The chord iteration (`nhjax._solver.chord.PresetChord`) to a few ulps of the dtype.
 
@@ -218,6 +244,20 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     def complete(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], PyTree]:
         raise NotImplementedError
+
+    def resolution(self, data: Any) -> tuple[Float[Array, " u"], Float[Array, " u"]] | None:
+        r"""How finely the points at which the residual evaluates the system are
+        resolved: for each unknown $u_j = (x'_j - x_j)/s_j$, the rounding of
+        $x_j + s_ju_j$ in the units of $u_j$, $\epsilon|x_j|/s_j$ (`resolution_of`), and
+        the scale $s_j$ (0 for unknowns that are not increments of the state, such as
+        impulses). `None` (the default): no floor.
+
+        The chord iteration's tolerance then has a floor (`rounding_floor`,
+        `nhjax._solver.chord.PresetChord`): a coordinate far from the origin, such as
+        an angle wound up over a long run, is held only to $\epsilon$ times its size,
+        and what depends on it only to that, whatever the tolerance asks."""
+        del data
+        return None
 
     def init(self, terms, t0, t1, y0, args) -> MethodState:
         system, _ = self.system_and_step(terms, t0, t1)
@@ -302,7 +342,11 @@ class AbstractMethod(diffrax.AbstractSolver):
         if isinstance(root_finder, PresetChord):
             jacobian = self.chord_jacobian(guess, fixed_data)
             inverse = chord_inverse(jacobian)
-            solution = root_finder.solve(self.root_find_residual, guess, fixed_data, inverse, self.root_find_max_steps)
+            resolution = self.resolution(fixed_data)
+            floor = None if resolution is None else rounding_floor(jacobian, *resolution)
+            solution = root_finder.solve(
+                self.root_find_residual, guess, fixed_data, inverse, self.root_find_max_steps, floor
+            )
             evaluations_finite = jnp.all(jnp.isfinite(guess)) & jnp.all(jnp.isfinite(jacobian))
             singular = ~jnp.all(jnp.isfinite(inverse))
         else:

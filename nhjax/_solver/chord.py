@@ -22,7 +22,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
 from .._linalg import inverse, is_diagonally_dominant, UNROLL_LIMIT
-from ._rare_branch import rarely
+from .._rare_branch import rarely
 
 
 STALL_FACTOR = 8.0
@@ -43,6 +43,8 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
 
 class _ChordState(eqx.Module):
     inverse: Float[Array, "n n"]
+    floor: Float[Array, " n"]
+    correction_floor: Float[Array, " n"]
     diff_size: Scalar
     previous_diff_size: Scalar
     residual_size: Scalar
@@ -88,6 +90,18 @@ class PresetChord(optx.AbstractRootFinder):
     is all the rounding allows. (With a contraction rate $c$, a slowly converging
     iteration accepted this way is within `STALL_FACTOR` $c/(1 - c)$ tolerances of its
     root; for the nhjax methods $c = O(h^3)$, see the module docstring.)
+
+    **A floor the caller knows.** Where the residual's rounding is known to exceed
+    `atol` in some components, `options["floor"]` (a vector, default zero) gives its
+    size there: the residual is then measured in units of `atol + floor` per
+    component, and the correction in units of `atol + |inverse| floor`, the correction
+    that a residual at its floor causes. The methods pass the rounding of the points
+    at which their residuals evaluate the system (`nhjax.AbstractMethod.resolution`):
+    an angle wound up to $10^6$ is known to $10^{-10}$, and a force that depends on it
+    only to $10^{-10}$ times its derivative, whatever the tolerance asks. The
+    projection (`nhjax.Projection`) passes the rounding of the invariants, which near
+    an equilibrium, where their gradients are small, moves the state by more than
+    `atol` per iteration.
     """
 
     atol: float
@@ -103,8 +117,13 @@ class PresetChord(optx.AbstractRootFinder):
                 jacobian = jax.jacfwd(lambda u: fn(u, args)[0])(y)
             inverse = chord_inverse(jacobian)
         inverse = lax.stop_gradient(inverse)
+        floor = options.get("floor")
+        floor = jnp.zeros_like(y) if floor is None else lax.stop_gradient(jnp.broadcast_to(floor, y.shape))
+        # What a residual at its floor moves the iterate by: corrections of that size
+        # are rounding, not progress.
+        correction_floor = jnp.abs(inverse) @ floor
         infinity = jnp.array(jnp.inf, dtype=y.dtype)
-        return _ChordState(inverse, infinity, infinity, infinity, jnp.array(0))
+        return _ChordState(inverse, floor, correction_floor, infinity, infinity, infinity, jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
         del options, tags
@@ -114,11 +133,14 @@ class PresetChord(optx.AbstractRootFinder):
         # iteration as diverged; the iterate stays the last finite one, so that the
         # caller can still tell where the step was heading.
         diff = jnp.where(jnp.all(jnp.isfinite(diff)), diff, jnp.nan)
+        tolerance = self.atol + self.rtol * self.norm(y)
         new_state = _ChordState(
             state.inverse,
-            self.norm(diff) / (self.atol + self.rtol * self.norm(y)),
+            state.floor,
+            state.correction_floor,
+            self.norm(diff / (tolerance + state.correction_floor)),
             state.diff_size,
-            self.norm(residual) / self.atol,
+            self.norm(residual / (self.atol + state.floor)),
             state.steps + 1,
         )
         return jnp.where(jnp.isnan(diff), y, y - diff), new_state, aux
@@ -148,25 +170,33 @@ class PresetChord(optx.AbstractRootFinder):
         return y, aux, {}
 
     def solve(
-        self, fn, y0: Float[Array, " n"], args, inverse: Float[Array, "n n"], max_steps: int
+        self,
+        fn,
+        y0: Float[Array, " n"],
+        args,
+        inverse: Float[Array, "n n"],
+        max_steps: int,
+        floor: Float[Array, " n"] | None = None,
     ) -> ChordSolution:
         """The iteration for a root of `fn(u, args)` (no auxiliary output) from `y0`
         with the inverse Jacobian approximation `inverse`: the iterates, codes and
         counts of `optimistix.root_find(fn, self, y0, args, options=dict(inverse=...),
         max_steps=max_steps, throw=False)`, including
         `optimistix.RESULTS.nonlinear_max_steps_reached` and `nonfinite` for a
-        non-finite iterate, computed by a plain `lax.while_loop`.
+        non-finite iterate, computed by a plain `lax.while_loop`; `floor` as
+        `options["floor"]` (see the class docstring).
 
-        The loop carries only what changes: the inverse, which does not, stays outside
-        it. Under `vmap` a while loop's body ends with a select between the old and the
-        new carry of every trajectory, and carrying the inverse (as optimistix's
-        solver state does) would copy an n-by-n matrix per trajectory per iteration;
+        The loop carries only what changes: the inverse and the floors, which do not,
+        stay outside it. Under `vmap` a while loop's body ends with a select between the
+        old and the new carry of every trajectory, and carrying the inverse (as
+        optimistix's solver state does) would copy an n-by-n matrix per trajectory per
+        iteration;
         `benchmarks/gonzalez_r.py` measures the batch. No derivatives flow through the
         loop: its inputs are constants, and the methods differentiate the root by the
         implicit function theorem."""
         fn_with_aux = lambda u, a: (fn(u, a), None)
-        state = self.init(fn_with_aux, y0, args, dict(inverse=inverse), None, None, frozenset())
-        inverse = state.inverse
+        state = self.init(fn_with_aux, y0, args, dict(inverse=inverse, floor=floor), None, None, frozenset())
+        constants = (state.inverse, state.floor, state.correction_floor)
 
         def terminate_and_result(y, state):
             terminate, result = self.terminate(fn_with_aux, y, args, None, state, frozenset())
@@ -178,11 +208,11 @@ class PresetChord(optx.AbstractRootFinder):
 
         def body(carry):
             y, state, _, _ = carry
-            new_y, new_state, _ = self.step(fn_with_aux, y, args, None, _with_inverse(state, inverse), frozenset())
-            new_state = _with_inverse(new_state, None)
+            new_y, new_state, _ = self.step(fn_with_aux, y, args, None, _with_constants(state, constants), frozenset())
+            new_state = _with_constants(new_state, (None, None, None))
             return (new_y, new_state) + terminate_and_result(y, new_state)
 
-        init = (y0, _with_inverse(state, None)) + terminate_and_result(y0, state)
+        init = (y0, _with_constants(state, (None, None, None))) + terminate_and_result(y0, state)
         y, state, terminate, result = lax.while_loop(cond, body, init)
         result = optx.RESULTS.where(
             (result == optx.RESULTS.successful) & ~terminate, optx.RESULTS.nonlinear_max_steps_reached, result
@@ -190,5 +220,8 @@ class PresetChord(optx.AbstractRootFinder):
         return ChordSolution(y, result, state.steps, state.residual_size)
 
 
-def _with_inverse(state: _ChordState, inverse) -> _ChordState:
-    return eqx.tree_at(lambda s: s.inverse, state, inverse, is_leaf=lambda x: x is None)
+def _with_constants(state: _ChordState, constants) -> _ChordState:
+    """`state` with its constants (the inverse and the floors) replaced."""
+    return eqx.tree_at(
+        lambda s: (s.inverse, s.floor, s.correction_floor), state, constants, is_leaf=lambda x: x is None
+    )

@@ -16,7 +16,7 @@ from .._discrete_gradient import (
     SwappedArguments,
 )
 from .._system import SkewGradientSystem
-from .base import AbstractMethod, increment_scale
+from .base import AbstractMethod, increment_scale, resolution_of
 
 
 def midpoint_structure(structure, x, x1, args):
@@ -138,6 +138,9 @@ class DiscreteGradient(AbstractMethod):
         if _underlying(self.discrete_gradient) is not gonzalez:
             return self.residual(u, data)
         return self.residual(u, data, midpoint_gradient)
+
+    def resolution(self, data):
+        return resolution_of(data.x, data.scale), data.scale
 
     def complete(self, u, data):
         return data.x + data.scale * u, None

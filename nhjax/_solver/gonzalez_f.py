@@ -3,12 +3,13 @@ constraint forces."""
 
 from typing import Any, ClassVar, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import optimistix as optx
 
 from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient
 from .._nonholonomic import NonholonomicSystem
-from .base import AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit, resolution_of
 
 
 class _StepData(NamedTuple):
@@ -103,6 +104,15 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
         """The residual with the midpoint gradient in place of the discrete gradient
         (for the Jacobian approximation, see `nhjax._solver.chord`)."""
         return self.residual(unknowns, data, midpoint_gradient)
+
+    def resolution(self, data):
+        n = data.z.shape[0] // 2
+        rows = jax.eval_shape(data.system.constraints, data.z[:n], data.args).shape[0]
+        impulses = jnp.zeros(rows, data.z.dtype)
+        return (
+            jnp.concatenate([resolution_of(data.z, data.scale), impulses]),
+            jnp.concatenate([data.scale, impulses]),
+        )
 
     def complete(self, unknowns, data):
         n = data.z.shape[0] // 2

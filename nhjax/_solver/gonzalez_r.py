@@ -14,18 +14,15 @@ $\partial H/\partial p$ does not depend on $q$ (checked on its program), the met
 a constant (`_metric`); for $M = I$, $\mathcal{H}$ and its gradient need no frame at all
 (`nhjax._reduced.ReducedSystem`), so the Gonzalez correction costs no QR. Under `vmap`
 the predictor's Euler branch runs only at the steps where some trajectory needs it
-(`nhjax._solver._rare_branch.rarely`), and the chord iteration's loop runs until the
+(`nhjax._rare_branch.rarely`), and the chord iteration's loop runs until the
 slowest trajectory has converged: on a batch of 200 gearbox trajectories at
 $h = 0.1$, 4.4 iterations per trajectory and step on average, 5.9 for the slowest of
 the batch at a step. Derivatives of a run add, per step, one
 linearisation of the residual (its Jacobian in the unknowns and its derivative along
 the data, `nhjax._solver.base._implicit_root`), whose second derivatives of the frame
-through the QR in $\Pi$ make most of the derivative program. Of the 10240 HLO
-instructions of the reverse-mode program through 2000 gearbox steps
-(`benchmarks/gradients.py`'s loss), the recording scan is 2380 and the Gonzalez
-correction's Taylor branch for nearly equal points (`gonzalez_correction`), linearised
-and transposed though it runs only where the points nearly coincide, 1618; of the
-9769 of forward mode (`jax.jacfwd`), the Taylor branch is 2214. Measured part by part in
+through the QR in $\Pi$ make most of the derivative program, with the Gonzalez
+correction's branch for nearly equal points (`gonzalez_correction`), linearised and
+transposed though it runs only where the points nearly coincide. Measured part by part in
 the scaling table of `python benchmarks/suite.py` (`benchmarks/_profile.py`), whole
 steps against the implicit-midpoint yardstick and the NumPy route by
 `python benchmarks/gonzalez_r.py`, against variants of the step by
@@ -44,11 +41,11 @@ from jaxtyping import Array
 
 from .._adapted import adapted_structure_times
 from .._dependence import evaluated_inverse_metric, velocity_dependence
-from .._discrete_gradient import gonzalez_correction
+from .._discrete_gradient import Branch, gonzalez_correction
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, ReducedSystem, split_reduced
-from ._rare_branch import rarely
-from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient
+from .._rare_branch import rarely
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient, resolution_of
 
 
 def _metric(system: NonholonomicSystem, y0, args):
@@ -88,6 +85,7 @@ class _StepData(NamedTuple):
     scale: Array
     args: Any
     energy: Array
+    momentum: Array | None
     previous_velocity: Array
     previous_step: Array
 
@@ -114,14 +112,26 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     **Arguments:**
 
     - `derivative`: `"autodiff"` (default; $\partial X/\partial q$ by `jax.jacfwd`
-        through the QR, and the exact Gonzalez discrete gradient with its Taylor form
-        for nearly equal points) or `"central_difference"` (the paper's remark
-        "Implementation using finite differences": central differences of $X$ with
-        increment `difference_step`, default $|h|$; the midpoint gradient is then
-        accurate to $O(h^2)$, so the method stays second order and keeps energy and
-        constraints, but the correction term is always the printed formula).
+        through the QR, and the exact Gonzalez discrete gradient, with the derivatives
+        of its Taylor form for nearly equal points) or `"central_difference"` (the
+        paper's remark "Implementation using finite differences": central differences
+        of $X$ with increment `difference_step`, default $|h|$; the midpoint gradient
+        is then accurate to $O(h^2)$, so the method stays second order and keeps
+        energy and constraints, and the correction term's derivatives are its own).
     - `difference_step`: the finite-difference increment, `None` for $|h|$.
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
+
+    **Small motions and wound angles.** For nearly equal $\zeta, \zeta'$ (motion too
+    small for the values of $\mathcal{H}$ to resolve: oscillations of amplitude
+    $10^{-12}$ about an equilibrium whose energy is of size 1), the difference
+    $\mathcal{H}(\zeta') - \mathcal{H}(\zeta)$ comes from gradients along a segment
+    (`nhjax.gonzalez`, `nhjax._reduced.ReducedSystem.energy_segment`), and the chord
+    iteration's tolerance has a floor at the rounding of the points the residual is
+    evaluated at (`resolution`): an angle wound to $6\cdot10^6$ is known to
+    $10^{-9}$, and every force that depends on it only to that. The energy of a
+    returned state is then kept to its own rounding,
+    $\epsilon(|H| + \sum_i|x_i||\partial_iH|)$ per step, which for a wound angle
+    exceeds $\epsilon|H|$: storing the angle rounds it.
 
     A step whose frame degenerates ($A$ losing rank at $q'$, or between $q$ and $q'$,
     where the frame with the step's signs turns singular) fails with
@@ -197,32 +207,39 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         guess = h * velocity / scale
         previous = jnp.where(continues, carry.last_velocity, jnp.nan)
         previous_step = jnp.where(continues, carry.last_step, jnp.nan)
-        data = _StepData(reduced, zeta, h, scale, args, reduced.hamiltonian(zeta, args), previous, previous_step)
+        energy, momentum = reduced.start_of_step(zeta, args)
+        data = _StepData(reduced, zeta, h, scale, args, energy, momentum, previous, previous_step)
         return guess, data
 
-    def residual(self, u, data, correction: bool = True, taylor: bool | None = None):
+    def residual(self, u, data, correction: bool = True, branch: Branch = "cond"):
         r"""`correction=False`: the residual with the midpoint gradient alone, for the
-        Jacobian approximation (see `nhjax._solver.chord`). `taylor`: whether the
-        Gonzalez correction takes its derivatives from the Taylor form for nearly equal
-        points (`nhjax._discrete_gradient.gonzalez_correction`); by default where
-        $\partial X/\partial q$ is exact."""
+        Jacobian approximation (see `nhjax._solver.chord`). `branch`: how the Gonzalez
+        correction selects its form for nearly equal points
+        (`nhjax._discrete_gradient.gonzalez_correction`), the difference
+        $\mathcal{H}(\zeta') - \mathcal{H}(\zeta)$ then coming from gradients along a
+        segment (`nhjax._reduced.ReducedSystem.energy_segment`), which is exact to its
+        truncation whatever the midpoint gradient, so with either `derivative`."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         zeta1 = zeta + scale * u
         frame, bracket, gradient = reduced.frame_bracket_and_gradient(0.5 * (zeta + zeta1), args)
         if correction:
+            energy1, segment = reduced.energy_segment(zeta, data.momentum, zeta1, args)
             gradient = gonzalez_correction(
                 reduced.hamiltonian,
                 gradient,
                 zeta,
                 zeta1,
                 args,
-                taylor=self.derivative == "autodiff" if taylor is None else taylor,
+                branch=branch,
+                taylor=self.derivative == "autodiff",
                 f_x=data.energy,
+                f_x1=energy1,
+                segment=segment,
             )
         return u - h * adapted_structure_times(frame, bracket, gradient) / scale
 
     def root_find_residual(self, u, data):
-        return self.residual(u, data, taylor=False)
+        return self.residual(u, data, branch="rarely")
 
     def simplified_residual(self, u, data):
         return self.residual(u, data, correction=False)
@@ -265,6 +282,9 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         along_rho = jax.jacfwd(lambda r: field(q, r, frame))(rho)
         field_jacobian = jnp.concatenate([along_q, along_rho], axis=1)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
+
+    def resolution(self, data):
+        return resolution_of(data.zeta, data.scale), data.scale
 
     def complete(self, u, data):
         zeta, scale, args = data.zeta, data.scale, data.args

@@ -10,7 +10,7 @@ import optimistix as optx
 
 from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
-from .base import all_finite, AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit
+from .base import all_finite, AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit, resolution_of
 
 
 CONSTRAINT_FORCES = ("endpoints", "midpoint")
@@ -192,6 +192,13 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
             a1 = system.constraints(q1, args) / data.a_unit
             constraint = a1 @ system.velocity(q1, p1, args) / data.v_unit
         return jnp.concatenate([u[:n] - position, constraint])
+
+    def resolution(self, data: _StepData):
+        impulses = jnp.zeros(data.a0.shape[0], data.q0.dtype)
+        return (
+            jnp.concatenate([resolution_of(data.q0, data.q_scale), impulses]),
+            jnp.concatenate([data.q_scale, impulses]),
+        )
 
     def complete(self, u, data: _StepData):
         _, q1, _, _, p1 = self._equations(u, data)

@@ -23,6 +23,7 @@ from .base import (
     all_finite,
     default_root_finder,
     no_gradient,
+    ROUNDING_FLOOR,
     step_return,
     unwrapped_system,
 )
@@ -239,7 +240,14 @@ class Projection(diffrax.AbstractWrappedSolver):
         guess = jnp.zeros(directions.shape[0], dtype=flat.dtype)
         root_finder = default_root_finder(flat.dtype)
         assert isinstance(root_finder, PresetChord)
-        solution = root_finder.solve(_residual, guess, fixed, gram_inverse, self.root_find_max_steps)
+        # The invariants are known only to the rounding of the state they are evaluated
+        # at, eps |G| |y| (an angle wound far from the origin), and at least to `atol`;
+        # near an equilibrium, where their gradients are small, that rounding moves the
+        # multipliers by |(GG^T)^-1| times it at every iteration: corrections of that
+        # size are not progress (`PresetChord`'s floor).
+        state_rounding = float(jnp.finfo(flat.dtype).eps) * (jnp.abs(lax.stop_gradient(directions)) @ jnp.abs(flat))
+        floor = root_finder.atol + ROUNDING_FLOOR * state_rounding
+        solution = root_finder.solve(_residual, guess, fixed, gram_inverse, self.root_find_max_steps, floor)
         converged = (solution.result == optx.RESULTS.successful) & jnp.isfinite(solution.residual_size)
         multipliers = _implicit_root(solution.value, data, residual=_residual)
         y1 = unravel(data.y_tilde + data.directions.T @ multipliers)

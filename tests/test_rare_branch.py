@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nhjax._solver._rare_branch import rarely
+from nhjax._rare_branch import rarely
 
 
 def _counting(calls):
