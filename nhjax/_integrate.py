@@ -541,6 +541,21 @@ def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, *, 
     return _solution_from_saves(ts, saved, result, stats, (y0, dt, t0, args))
 
 
+def _check_save_times(save_at, t0, t1) -> None:
+    """Raise a `ValueError` unless the concrete `save_at` is finite, non-decreasing and
+    inside [t0, t1] (diffrax would otherwise stop with an error deep inside the run, or
+    with `throw=False` return a failure for a mistake in the call)."""
+    if any(isinstance(x, jax.core.Tracer) for x in (save_at, t0, t1)):
+        return
+    times = np.asarray(save_at)
+    if not np.all(np.isfinite(times)):
+        raise ValueError(f"save_at must hold finite times, got {times}.")
+    if np.any(np.diff(times) < 0):
+        raise ValueError(f"save_at must be sorted (non-decreasing), got {times}.")
+    if times.size and (times[0] < float(t0) or times[-1] > float(t1)):
+        raise ValueError(f"save_at must lie inside [t0, t1] = [{float(t0)}, {float(t1)}], got {times}.")
+
+
 def integrate_adaptive(
     system: AbstractSystem,
     y0: PyTree[Array],
@@ -597,6 +612,7 @@ def integrate_adaptive(
     save_at = jnp.stack([t0, t1]) if save_at is None else jnp.asarray(save_at, dtype=dtype)
     if save_at.ndim != 1:
         raise ValueError(f"save_at must be a 1-D array of times, got shape {save_at.shape}.")
+    _check_save_times(save_at, t0, t1)
     solution = _integrate_adaptive(
         system,
         diffrax.Dopri8() if solver is None else solver,

@@ -204,6 +204,10 @@ def test_adaptive_baseline_bad_input_and_result_codes():
         nh.integrate_adaptive(GEARBOX.canonical, y0, 0.0)
     with pytest.raises(ValueError, match="rtol and atol"):
         nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, rtol=0.0)
+    for save_at, message in [([0.0, 2.0], "inside"), ([-0.5, 1.0], "inside"), ([0.5, 0.2], "sorted"), ([0.0, float("nan")], "finite")]:
+        for throw in (True, False):
+            with pytest.raises(ValueError, match=message):
+                nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, save_at=jnp.array(save_at), throw=throw)
     violating = (y0[0], y0[1] + 1.0)
     solution = nh.integrate_adaptive(GEARBOX.canonical, violating, 1.0, throw=False)
     assert solution.result == nh.RESULTS.constraint_violated_initially

@@ -103,6 +103,10 @@ def _validated_coefficients(coefficients, order) -> tuple[float, ...]:
         raise ValueError(f"coefficients must be a sequence of real numbers, got {coefficients!r}.") from None
     if not values or not all(math.isfinite(c) for c in values):
         raise ValueError(f"coefficients must be a non-empty sequence of finite numbers, got {values}.")
+    if any(c == 0 for c in values):
+        # A substep of size zero is the identity: leaving it out gives the same scheme,
+        # while taking it would pose a step's equations with h = 0.
+        raise ValueError(f"coefficients must be nonzero (a zero substep does nothing: leave it out), got {values}.")
     asymmetry = max(abs(a - b) for a, b in zip(values, reversed(values)))
     if asymmetry > _COEFFICIENT_TOLERANCE:
         raise ValueError(

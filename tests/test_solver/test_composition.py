@@ -356,6 +356,8 @@ def test_bad_arguments_are_refused():
         nh.Composition(nh.GonzalezR(), 4, coefficients=[float("nan")])
     with pytest.raises(ValueError, match="finite"):
         nh.Composition(nh.GonzalezR(), 4, coefficients=[])
+    with pytest.raises(ValueError, match="nonzero"):
+        nh.Composition(nh.GonzalezR(), 2, coefficients=[0.0, 1.0, 0.0])
     with pytest.raises(ValueError, match="even int"):
         nh.Composition(nh.GonzalezR(), 3, coefficients=[1.0])
 
