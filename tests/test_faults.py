@@ -41,7 +41,7 @@ def _beyond(clock, threshold):
 
 
 def _canonical_hamiltonian(q, p, args):
-    potential = 0.5 * args["stiffness"] * (q[0] ** 2 + q[1] ** 2) + 0.25 * q[0] ** 4
+    potential = 0.5 * args["stiffness"] * (q[0] ** 2 + q[1] ** 2) + 0.25 * q[0] ** 4 + args["offset"]
     return 0.5 * p @ p + potential + _beyond(q[2], args["nan_hamiltonian_at"])
 
 
@@ -56,7 +56,7 @@ CANONICAL = nh.NonholonomicSystem(_canonical_hamiltonian, _constraints)
 
 
 def _adapted_hamiltonian(x, args):
-    potential = 0.5 * args["stiffness"] * (x[0] ** 2 + x[1] ** 2) + 0.25 * x[0] ** 4
+    potential = 0.5 * args["stiffness"] * (x[0] ** 2 + x[1] ** 2) + 0.25 * x[0] ** 4 + args["offset"]
     return 0.5 * (x[3] ** 2 + x[4] ** 2) + potential + _beyond(x[2], args["nan_hamiltonian_at"])
 
 
@@ -74,14 +74,16 @@ ADAPTED = nh.SkewGradientSystem(_adapted_hamiltonian, _adapted_structure)
 
 
 def _healthy_args():
-    return dict(stiffness=1.0, nan_hamiltonian_at=FAR, nan_constraints_at=FAR, rank_lost_at=FAR)
+    return dict(stiffness=1.0, offset=0.0, nan_hamiltonian_at=FAR, nan_constraints_at=FAR, rank_lost_at=FAR)
 
 
-def _initial_state(system, args):
+def _initial_state(system, args, size=1.0, clock=CLOCK_START):
+    """The healthy start; `size` scales the motion about the equilibrium (the clock's
+    included), `clock` is where the clock starts."""
     if system is ADAPTED:
-        return jnp.array([0.4, -0.2, CLOCK_START, 0.3, CLOCK_SPEED])
-    q = jnp.array([0.4, -0.2, CLOCK_START])
-    return q, CANONICAL.project_momentum(q, jnp.array([0.3, 0.5, CLOCK_SPEED]), args)
+        return jnp.array([0.4 * size, -0.2 * size, clock, 0.3 * size, CLOCK_SPEED * size])
+    q = jnp.array([0.4 * size, -0.2 * size, clock])
+    return q, CANONICAL.project_momentum(q, size * jnp.array([0.3, 0.5, CLOCK_SPEED]), args)
 
 
 # name: (changes to the healthy args, dt, the code)
@@ -95,7 +97,16 @@ FAULTS = {
     "rank_lost_mid_run": (dict(rank_lost_at=MID_RUN), DT, nh.RESULTS.constraints_rank_deficient),
     "infinite_dt": ({}, jnp.inf, nh.RESULTS.invalid_dt),
     "step_too_large": (dict(stiffness=400.0), 2.0, nh.RESULTS.root_find_not_converged),
+    # Not a fault: what must succeed. A motion of size 1e-12 about an equilibrium of
+    # energy 1, below the rounding of the energy's values. (Wound angles:
+    # tests/test_solver/test_amplitude_and_winding.py, on the gearbox, whose potential
+    # is periodic in its angle; here the potential grows with every coordinate.)
+    "small_motion": (dict(offset=1.0), DT, nh.RESULTS.successful),
+    # The clock a million turns on, its thresholds beyond it: a coordinate held only
+    # to 1e-9 beside others of size 1.
+    "far_clock": (dict(nan_hamiltonian_at=1e7, nan_constraints_at=1e7, rank_lost_at=1e7), DT, nh.RESULTS.successful),
 }
+STARTS = {"small_motion": dict(size=1e-12), "far_clock": dict(clock=CLOCK_START + 2e6 * np.pi)}
 # A skew-gradient system has no constraint matrix to lose rank.
 ADAPTED_FAULTS = [name for name in FAULTS if "rank" not in name]
 
@@ -112,10 +123,18 @@ def _batch(system, names):
         args.append({key: jnp.asarray(value, dtype=jnp.float64) for key, value in {**_healthy_args(), **changes}.items()})
         steps.append(dt)
     args = jax.tree.map(lambda *leaves: jnp.stack(leaves), *args)
-    # Every run starts from the healthy system's state (on its constraint), but one.
+    # Every run starts from the healthy system's state (on its constraint), but those
+    # of STARTS and one.
     start = _initial_state(system, _healthy_args())
     nan_start = jax.tree.map(lambda leaf: leaf.at[0].set(jnp.nan), start)
-    starts = [nan_start if name == "nan_initial_state" else start for name in names]
+    starts = [
+        nan_start
+        if name == "nan_initial_state"
+        else _initial_state(system, {**_healthy_args(), **FAULTS[name][0]}, **STARTS[name])
+        if name in STARTS
+        else start
+        for name in names
+    ]
     states = jax.tree.map(lambda *leaves: jnp.stack(leaves), *starts)
     return states, args, jnp.asarray(steps, dtype=jnp.float64)
 
@@ -156,8 +175,8 @@ def test_saves_are_finite_before_the_failure_and_not_after(batched):
     for index, name in enumerate(names):
         saved = [leaf[index] for leaf in _leaves(solution.ys)] + [solution.energy[index]]
         finite = np.all(np.stack([np.all(np.isfinite(np.asarray(x).reshape(x.shape[0], -1)), axis=1) for x in saved]), axis=0)
-        if name == "healthy":
-            assert finite.all()
+        if FAULTS[name][2] == nh.RESULTS.successful:
+            assert finite.all(), name
             continue
         failed_from = np.argmin(finite)
         assert not finite[failed_from:].any(), f"{name}: a finite save after the failure"
@@ -183,6 +202,14 @@ def test_batch_members_equal_their_single_runs(batched):
         # from the single one, so it may round differently (a few ulps).
         for together, apart in zip(_leaves(pick(solution.ys)), _leaves(alone.ys)):
             np.testing.assert_allclose(together, apart, rtol=1e-14, atol=1e-13, err_msg=name)
+        if name == "small_motion":
+            # Not noise: the motion (from the start, the clock's included) is linear in
+            # its size to O(size), so at 1e-12 it is that at 1e-8 scaled, to the
+            # rounding of the clock's position relative to it.
+            larger = single(_initial_state(system, pick(args), size=1e-8), pick(args), steps[index])
+            for small, large in zip(_leaves(alone.ys), _leaves(larger.ys)):
+                small, large = (small - small[0]) / 1e-12, (large - large[0]) / 1e-8
+                np.testing.assert_allclose(small, large, rtol=0, atol=1e-3 * float(np.max(np.abs(large))))
 
 
 def _loss(system, method, y0, args, dt, adjoint=None):
@@ -211,7 +238,7 @@ def test_failed_trajectories_have_nan_derivatives(batched, mode):
         parts = {"y0": _leaves(y_grad), "args": [args_grad["stiffness"]], "dt": [dt_grad]}
         for label, leaves in parts.items():
             values = np.concatenate([np.ravel(leaf) for leaf in leaves])
-            if name == "healthy":
-                assert np.all(np.isfinite(values)), f"healthy: d/d{label} not finite"
+            if FAULTS[name][2] == nh.RESULTS.successful:
+                assert np.all(np.isfinite(values)), f"{name}: d/d{label} not finite"
             else:
                 assert np.all(np.isnan(values)), f"{name}: d/d{label} = {values}, not NaN"
