@@ -19,7 +19,7 @@ from ._integrate import Solution
 from ._results import RESULTS
 
 
-FORMAT = 2
+FORMAT = 3
 _MANIFEST = "manifest.json"
 _CHUNK_PATTERN = "chunk_*.npz"
 _SUMMED_STATS = ("num_steps", "root_find_steps", "substep_root_find_steps")
@@ -180,6 +180,12 @@ def join_chunks(chunks, treedef, n_saved, time_axis) -> Solution:
     )
 
 
+# What a manifest entry whose value alone says little stands for.
+_MEANINGS = {
+    "computation": " (what the system's functions compute: a function's body, or a constant it uses, has changed)",
+}
+
+
 def open_run(directory: pathlib.Path, manifest: dict) -> None:
     """Create `directory` with `manifest`, or check that the run it holds is this one."""
     directory.mkdir(parents=True, exist_ok=True)
@@ -189,7 +195,7 @@ def open_run(directory: pathlib.Path, manifest: dict) -> None:
     if path.exists():
         stored = json.loads(path.read_text())
         differences = [
-            f"  {key}: {stored.get(key)!r} there, {value!r} here"
+            f"  {key}{_MEANINGS.get(key, '')}: {stored.get(key)!r} there, {value!r} here"
             for key, value in manifest.items()
             if stored.get(key) != value
         ]
@@ -251,6 +257,18 @@ def describe(tree) -> str:
     Hamiltonian `_hamiltonian`."""
     named = jax.tree.map(lambda leaf: _Named(leaf) if callable(leaf) else leaf, tree)
     return eqx.tree_pformat(named, width=1_000_000, short_arrays=False)
+
+
+def computation_fingerprint(system, y0, args) -> str:
+    r"""A hash of what `system` computes: the program (jaxpr, with its constants) of its
+    vector field and energy, traced at `y0` (one trajectory's state). Unlike
+    `describe`, which names functions, it changes when a function's body does (an edited
+    Hamiltonian under the same name, a changed constant it closes over), so that a
+    resumed run does not reuse chunks that another system computed."""
+    closed = jax.make_jaxpr(lambda y, a: (system.vf(0.0, y, a), system.energy(y, a)))(y0, args)
+    digest = hashlib.sha256(str(closed.jaxpr).encode())
+    digest.update(fingerprint(list(closed.consts)).encode())
+    return digest.hexdigest()[:16]
 
 
 def fingerprint(tree) -> str:

@@ -14,6 +14,7 @@ from tqdm.auto import tqdm
 from ._chunk_files import (
     chunk_arrays,
     chunk_path,
+    computation_fingerprint,
     describe,
     failures,
     fingerprint,
@@ -65,7 +66,9 @@ def run_chunked(
     save; the others leave out their first save, which is the previous chunk's last.
 
     **Resuming.** `directory/manifest.json` records the run: the system and method
-    (type and fields, functions by qualified name), fingerprints of `y0` and `args`,
+    (type and fields, functions by qualified name), a fingerprint of what the system's
+    functions compute (`computation`: their program, so that an edited body under the
+    same name is caught), fingerprints of `y0` and `args`,
     `dt`, `n_steps`, `save_every`, `chunk_steps`, the dtype and the batch size. A call
     whose run differs raises a `ValueError` naming what differs; otherwise the chunks on
     disk are loaded and the run continues after the last of them. Each chunk is
@@ -139,6 +142,7 @@ def run_chunked(
     manifest = dict(
         format=FORMAT,
         system=describe(system),
+        computation=computation_fingerprint(system, y0 if batch is None else jax.tree.map(lambda leaf: leaf[0], y0), args),
         method=describe(method),
         initial_state=fingerprint(y0),
         args=fingerprint(args),

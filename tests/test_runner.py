@@ -12,6 +12,7 @@ import pytest
 
 import nhjax as nh
 from nhjax._cli import main
+from nhjax._chunk_files import describe
 from nhjax._runner import run_chunked
 
 
@@ -101,6 +102,38 @@ def test_a_directory_holding_another_run_is_refused(chunked_run, tmp_path):
         _chunked(stray)
     with pytest.raises(ValueError, match="multiple of save_every=10"):
         _chunked(tmp_path / "new", chunk_steps=25)
+
+
+def _gearbox_with_pendulum_weight(weight):
+    """The gearbox with its pendulum's potential times `weight`: a Hamiltonian of the
+    same qualified name whatever the weight, as after editing its body."""
+
+    def hamiltonian(q, p, args):
+        return 0.5 * p @ p + 0.5 * (q[0] ** 2 + q[1] ** 2) + weight * (jnp.cos(q[2]) - 0.2 * jnp.sin(2 * q[2]))
+
+    return nh.NonholonomicSystem(hamiltonian, GEARBOX.constraints)
+
+
+def test_a_system_whose_functions_changed_under_the_same_names_is_refused(tmp_path):
+    """A run interrupted after its first chunk, then resumed with the Hamiltonian's body
+    edited (same name, same module): refused, naming the computation, not continued
+    from chunks of the other system."""
+    directory = tmp_path / "chunks"
+    settings = dict(dt=0.1, n_steps=40, save_every=10, chunk_steps=20)
+
+    def chunked(system, **changes):
+        run = {**settings, **changes}
+        return run_chunked(system, nh.SIDLA(), Y0, run.pop("dt"), run.pop("n_steps"), directory=directory, progress=False, **run)
+
+    original, edited = _gearbox_with_pendulum_weight(1.0), _gearbox_with_pendulum_weight(0.5)
+    assert describe(original) == describe(edited)
+    chunked(original)
+    (directory / "chunk_00001.npz").unlink()  # as if interrupted after the first chunk
+    with pytest.raises(ValueError, match=r"computation \(what the system's functions compute"):
+        chunked(edited)
+    # The original system resumes from its own chunk.
+    resumed = chunked(original)
+    assert resumed.result == nh.RESULTS.successful
 
 
 def test_killed_simulate_resumes_to_the_bits_of_an_uninterrupted_run(tmp_path):
