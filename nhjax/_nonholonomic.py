@@ -74,8 +74,14 @@ class NonholonomicSystem(AbstractSystem):
 
         A Lagrangian that is not of mechanical type (not quadratic in $\dot q$, a term
         linear in $\dot q$, $M$ not positive definite) would give a Hamiltonian of
-        another system: `nhjax.integrate` checks the type at the initial state and
-        reports `RESULTS.lagrangian_not_mechanical`.
+        another system: `nhjax.integrate` checks the type at the initial state and at
+        the end of every step of an nhjax method (`step_result`), each time along the
+        velocity there and two fixed directions, and reports
+        `RESULTS.lagrangian_not_mechanical`. What is not checked: directions of
+        $\dot q$ that no velocity of the run takes (a term such as $(\dot q_0\dot
+        q_1)^2$ along a run with $\dot q_1 = 0$ throughout is invisible, and harmless
+        to it), and the interior of a step; diffrax's solvers (`nhjax.Projection`
+        included) are checked at the start only.
 
         Every method integrates it as it integrates a system given by $H$; the
         Hamiltonian costs a solve with $M(q)$ per evaluation, which a system written
@@ -84,8 +90,24 @@ class NonholonomicSystem(AbstractSystem):
 
     def momentum_from_velocity(self, q, qdot, args) -> Float[Array, " n"]:
         r"""$p = M(q)\dot q$ ($= \partial L/\partial\dot q$), the momentum of the
-        velocity `qdot`: a state from positions and velocities."""
-        return self.metric(q, args) @ qdot
+        velocity `qdot`: a state from positions and velocities. For a system given by
+        its Lagrangian, $M = \partial^2L/\partial\dot q^2$ itself; otherwise the
+        inverse of $\partial^2H/\partial p^2$. Called with concrete arrays, it raises
+        a `ValueError` where $M$ is not symmetric positive definite (singular, say):
+        no momentum describes the velocity then."""
+        if isinstance(self.hamiltonian, LegendreHamiltonian):
+            metric, name = self.hamiltonian.mass_matrix(q, args), "The mass matrix d^2L/dqdot^2"
+        else:
+            metric, name = self.metric(q, args), "The metric M(q), the inverse of d^2H/dp^2,"
+        if not isinstance(metric, jax.core.Tracer):
+            positive = bool(jnp.all(jnp.isfinite(jnp.linalg.cholesky(metric))))
+            symmetric = bool(jnp.max(jnp.abs(metric - metric.T)) <= _tolerance(metric.dtype, jnp.max(jnp.abs(metric))))
+            if not (positive and symmetric):
+                raise ValueError(
+                    f"{name} is not symmetric positive definite at q = {q} (singular, "
+                    f"indefinite or not finite): {metric}. The system is not of mechanical type there."
+                )
+        return metric @ qdot
 
     # Mechanics.
 
@@ -160,8 +182,14 @@ class NonholonomicSystem(AbstractSystem):
 
     def step_result(self, y0, y1, args) -> RESULTS:
         """`rank_result` at the step's end with the stable signs at its start: $A$ lost
-        rank at $q'$ or between $q$ and $q'$."""
-        return self.rank_result(y1[0], args, self.frame_signs(y0[0], args))
+        rank at $q'$ or between $q$ and $q'$; for a system given by its Lagrangian,
+        before it, the Lagrangian's type at the step's end, along the velocity there
+        (`from_lagrangian`)."""
+        q1, p1 = y1
+        return first_failure(
+            self._lagrangian_result(q1, self.velocity(q1, p1, args), args),
+            self.rank_result(q1, args, self.frame_signs(y0[0], args)),
+        )
 
     def rank_result(self, q, args, signs=None) -> RESULTS:
         r"""`RESULTS.constraints_rank_deficient` if $A(q)$ has lost full row rank, else

@@ -35,9 +35,11 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     lagrangian_not_mechanical = (
         "The Lagrangian of NonholonomicSystem.from_lagrangian is not of mechanical type "
-        "1/2 qdot^T M(q) qdot - V(q) at the initial state: it is not quadratic in qdot, "
-        "has a term linear in qdot, or its Hessian in qdot is not symmetric positive "
-        "definite. Its Legendre transform would describe another system."
+        "1/2 qdot^T M(q) qdot - V(q) at the initial state or at a step's end (checked "
+        "along the velocity there and two fixed directions): it is not quadratic in qdot, "
+        "has a term linear in qdot, or its Hessian in qdot, the mass matrix M(q), is not "
+        "symmetric positive definite (a singular M among them). Its Legendre transform "
+        "would describe another system; the saved states from there on are not finite."
     )
     constraints_rank_deficient = (
         "The constraint matrix A(q) lost full row rank: a Householder pivot vanished "

@@ -128,3 +128,31 @@ def test_a_mechanical_lagrangian_of_the_same_shape_is_accepted():
     solution = nh.integrate(system, nh.GonzalezR(), y0, 0.1, 100)
     assert solution.result == nh.RESULTS.successful
     assert float(jnp.max(jnp.abs(solution.energy / solution.energy[0] - 1))) <= 1e-13
+
+
+@pytest.mark.parametrize("method", ["sidla", "gonzalez-r"])
+def test_a_lagrangian_that_turns_non_mechanical_along_the_run_is_caught_there(method):
+    """5 q0^2 |qdot|^4 vanishes at the start (q0 = 0), so the initial check passes; the
+    run's first step moves q0, and the step's end fails the check, where before the run
+    went on with the Hamiltonian of another system and reported success."""
+    lagrangian = lambda q, qdot, args: 0.5 * qdot @ qdot + 5 * q[0] ** 2 * jnp.sum(qdot**4) - 0.5 * q @ q  # noqa: E731
+    system = nh.NonholonomicSystem.from_lagrangian(lagrangian, _constraints)
+    q = jnp.array([0.0, -0.2, 0.1])
+    y0 = (q, system.project_momentum(q, jnp.array([0.5, 0.4, -0.1])))
+    solution = nh.integrate(system, METHODS[method], y0, 0.1, 20, throw=False)
+    assert solution.result == nh.RESULTS.lagrangian_not_mechanical
+    assert bool(jnp.all(jnp.isfinite(solution.ys[0][0])))  # the start was accepted
+    assert not bool(jnp.all(jnp.isfinite(solution.ys[0][-1])))
+
+
+def test_momenta_of_a_singular_mass_matrix_are_refused_naming_it():
+    """M = diag(1, 0, 1): no momentum describes a velocity; momentum_from_velocity says
+    so, where it gave NaN and the run then blamed the initial state."""
+    system = nh.NonholonomicSystem.from_lagrangian(
+        lambda q, qdot, args: 0.5 * (qdot[0] ** 2 + qdot[2] ** 2) - 0.5 * q @ q, _constraints
+    )
+    with pytest.raises(ValueError, match="mass matrix .* not symmetric positive definite"):
+        system.momentum_from_velocity(jnp.array([0.3, -0.2, 0.1]), jnp.array([0.5, 0.4, -0.1]), None)
+    healthy = nh.NonholonomicSystem.from_lagrangian(lambda q, qdot, args: 0.5 * qdot @ qdot - 0.5 * q @ q, _constraints)
+    p = healthy.momentum_from_velocity(jnp.array([0.3, -0.2, 0.1]), jnp.array([0.5, 0.4, -0.1]), None)
+    np.testing.assert_allclose(p, [0.5, 0.4, -0.1], rtol=1e-15)
