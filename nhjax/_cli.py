@@ -98,7 +98,14 @@ def _user_problem(spec: str):
     factory = getattr(module, factory_name, None)
     if not callable(factory):
         raise _FactoryError(f"module {module_name!r} has no function {factory_name!r}")
-    produced = factory()
+    try:
+        produced = factory()
+    except KeyboardInterrupt:
+        raise
+    except BaseException as error:  # SystemExit included: the factory is not the command
+        raise _FactoryError(
+            f"{spec}() failed (it is called with no arguments): {type(error).__name__}: {error}"
+        ) from None
     expected = "(system, (q0, p0), args), the system a NonholonomicSystem"
     if not (isinstance(produced, tuple) and len(produced) == 3):
         raise _FactoryError(f"{spec}() must return {expected}; it returned {type(produced).__name__}")
@@ -145,6 +152,8 @@ def _problem(arguments):
 
 
 ORDERS = (2, 4, 6, 8)
+# Step counts are int64 in the loop (diffrax's), with room for the count of saves.
+_MOST_STEPS = 2**62
 
 
 def _composed(method, order: int):
@@ -176,7 +185,15 @@ def _simulate(arguments, n_steps: int) -> int:
     except _FactoryError as error:
         print(f"nhjax simulate: error: {error}", file=sys.stderr)
         return 2
-    method = _composed(METHODS[arguments.method].solver, arguments.order)
+    shortfall = _disk_shortfall(_output_path(arguments), system, y0, args, n_steps // arguments.save_every + 1)
+    if shortfall:
+        print(f"nhjax simulate: error: {shortfall}", file=sys.stderr)
+        return 2
+    try:
+        method = _composed(METHODS[arguments.method].solver, arguments.order)
+    except ValueError as error:  # a method that composition cannot raise in order
+        print(f"nhjax simulate: error: argument --order: {error}", file=sys.stderr)
+        return 2
     out = _output_path(arguments)
     chunks = out.with_name(out.name + ".chunks")
     on_disk = len(list(chunks.glob("chunk_*.npz")))
@@ -190,6 +207,13 @@ def _simulate(arguments, n_steps: int) -> int:
     except (RuntimeError, ValueError) as error:  # a failed chunk, or a different run in `chunks`
         print(f"nhjax simulate: error: {error}", file=sys.stderr)
         return 1
+    except OSError as error:  # a full disk, say, while writing a chunk
+        print(
+            f"nhjax simulate: error: cannot write the chunks in {chunks}: {error}. The chunks "
+            "written so far are kept there; rerun the same command to continue from them.",
+            file=sys.stderr,
+        )
+        return 1
     elapsed = time.perf_counter() - start
 
     q, p = (np.asarray(leaf) for leaf in solution.ys)
@@ -197,9 +221,18 @@ def _simulate(arguments, n_steps: int) -> int:
         ts=np.asarray(solution.ts), q=q, p=p, energy=np.asarray(solution.energy),
         constraint=np.asarray(solution.constraint),
     )
-    write_atomically(out, lambda file: np.savez(file, **trajectory))
-    # The chunks only served to resume; the trajectory is complete in `out` now.
-    shutil.rmtree(chunks)
+    try:
+        write_atomically(out, lambda file: np.savez(file, **trajectory))
+    except OSError as error:
+        print(
+            f"nhjax simulate: error: cannot write {out}: {error}. The run's chunks are kept in "
+            f"{chunks}; rerun the same command to write {out} from them.",
+            file=sys.stderr,
+        )
+        return 1
+    # The chunks only served to resume; the trajectory is complete in `out` now (a run
+    # beside this one that finished first may have removed them already).
+    shutil.rmtree(chunks, ignore_errors=True)
 
     energy = trajectory["energy"]
     scale = abs(energy[0]) if energy[0] != 0 else 1.0  # relative unless H(0) = 0
@@ -211,6 +244,25 @@ def _simulate(arguments, n_steps: int) -> int:
     print(f"  result                             {nh.RESULTS[solution.result] or 'successful'}")
     print(f"  wall time (with compilation)       {elapsed:.2f} s")
     return 0
+
+
+def _disk_shortfall(out: pathlib.Path, system, y0, args, saves: int) -> str | None:
+    """Why the saves cannot fit on the disk of `out`, or `None`: each save holds t, q, p,
+    the energy and the constraint residual in float64, written twice (the chunks, then
+    the trajectory)."""
+    q, _ = y0
+    rows = system.constraints(q, args).shape[0]
+    needed = 2 * saves * 8 * (2 + 2 * q.shape[0] + rows)
+    folder = out.absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    free = shutil.disk_usage(folder).free
+    if needed > free:
+        return (
+            f"{saves:.3g} saves need about {needed / 2**30:.3g} GiB, and {folder} has {free / 2**30:.3g} "
+            "GiB free: save less often (--save-every), or take fewer steps"
+        )
+    return None
 
 
 def _output_path(arguments) -> pathlib.Path:
@@ -259,8 +311,13 @@ def _reproduce(arguments) -> int:
 
 
 def _listing(entries: dict) -> str:
+    """Names and their texts in two columns; a name too long for its column stands on a
+    line of its own, as argparse sets long options."""
+    indent = " " * 14
     return "\n".join(
-        textwrap.fill(text, 80, initial_indent=f"  {name:<12}", subsequent_indent=" " * 14)
+        textwrap.fill(text, 80, initial_indent=f"  {name:<12}", subsequent_indent=indent)
+        if len(name) < 12
+        else f"  {name}\n" + textwrap.fill(text, 80, initial_indent=indent, subsequent_indent=indent)
         for name, text in entries.items()
     )
 
@@ -418,6 +475,11 @@ def _checked_steps(parser, arguments) -> int:
     if n_steps < 1 or abs(n_steps * arguments.dt - arguments.t1) > 1e-9 * arguments.t1:
         parser.error(
             f"--t1 must be a whole number of steps: t1/h = {arguments.t1 / arguments.dt:g}"
+        )
+    if n_steps > _MOST_STEPS:
+        parser.error(
+            f"--t1/--dt asks for {n_steps:.3g} steps, more than the {_MOST_STEPS:.3g} a run can "
+            "count (int64); take a larger --dt"
         )
     if arguments.save_every < 1 or n_steps % arguments.save_every:
         parser.error(

@@ -95,18 +95,60 @@ def test_a_run_that_blows_up_fails_with_a_message(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_what_no_run_can_do_is_refused_before_any_work(tmp_path, capsys):
+    """A method that composition cannot raise in order, more steps than a run can
+    count, and more saves than the disk holds: a message and exit status 2, no
+    traceback, nothing written."""
+    out = str(tmp_path / "x.npz")
+    base = ["simulate", "gearbox", "--t1", "1", "--no-progress", "--out", out]
+    assert main([*base, "--method", "gonzalez-f", "--order", "4", "--dt", "0.1"]) == 2
+    assert "argument --order: Composition refuses GonzalezF" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_status:
+        main([*base, "--method", "sidla", "--dt", "1e-300"])
+    assert exit_status.value.code == 2
+    assert "asks for 1e+300 steps, more than the 4.61e+18 a run can count" in capsys.readouterr().err
+    assert main([*base, "--method", "sidla", "--dt", "1e-12"]) == 2
+    assert "1e+12 saves need about" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("where", ["chunk", "trajectory"])
+def test_a_full_disk_is_reported_and_the_chunks_kept(tmp_path, capsys, monkeypatch, where):
+    """A write that fails with ENOSPC, of a chunk or of the trajectory after the work:
+    exit status 1, a message that says the chunks are kept, and they are."""
+    import nhjax._chunk_files
+    import nhjax._runner
+
+    original = nhjax._chunk_files.write_atomically
+    out = tmp_path / "x.npz"
+
+    def full(path, write):
+        if where == "trajectory" and path != out:  # the manifest and chunks go through
+            return original(path, write)
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(nhjax._runner if where == "chunk" else nhjax._chunk_files, "write_atomically", full)
+    code = main(["simulate", "gearbox", "--method", "sidla", "--dt", "0.1", "--t1", "2", "--no-progress", "--out", str(out)])
+    error = capsys.readouterr().err
+    assert code == 1 and "No space left on device" in error and "kept" in error
+    assert "Traceback" not in error and not out.exists()
+    assert (tmp_path / "x.npz.chunks" / "manifest.json").exists()
+    assert bool(list((tmp_path / "x.npz.chunks").glob("chunk_*.npz"))) == (where == "trajectory")
+
+
+_ARGUMENTS = ["simulate", "gearbox", "--method", "gonzalez-r", "--dt", "0.01", "--t1", "100000", "--no-progress"]
+# A test run started in the background passes on an ignored SIGINT; a terminal's Ctrl-C
+# comes to a process with Python's handler, which the child installs first. The child
+# enters through the command's entry point (`_nhjax_command`), as the `nhjax` script does.
+_CHILD = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+
+
 def test_an_interrupt_ends_the_command_cleanly(tmp_path):
-    """Ctrl-C, whether it comes during the import, the compilation or the run: the exit
-    status of SIGINT (130) and one line, not a crash."""
-    # A test run started in the background passes on an ignored SIGINT; a terminal's
-    # Ctrl-C comes to a process with Python's handler, which the child installs first.
-    command = (
-        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-        "from nhjax._cli import main; sys.exit(main(sys.argv[1:]))"
-    )
+    """Ctrl-C during the compilation or the run: the exit status of SIGINT (130) and one
+    line, not a crash."""
+    command = _CHILD + "import _nhjax_command; sys.exit(_nhjax_command.main(sys.argv[1:]))"
     process = subprocess.Popen(
-        [sys.executable, "-c", command, "simulate", "gearbox", "--method", "gonzalez-r", "--dt", "0.01",
-         "--t1", "100000", "--no-progress", "--out", str(tmp_path / "x.npz")],
+        [sys.executable, "-c", command, *_ARGUMENTS, "--out", str(tmp_path / "x.npz")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     time.sleep(6)
@@ -116,6 +158,28 @@ def test_an_interrupt_ends_the_command_cleanly(tmp_path):
     assert stderr.strip().endswith("nhjax: interrupted")
 
 
+def test_an_interrupt_while_the_package_imports_ends_the_command_cleanly(tmp_path):
+    """Ctrl-C while `nhjax` is still importing JAX (seconds on a loaded machine): the
+    signal is sent from inside the import of jax itself, whatever the machine's speed,
+    and the command still leaves with 130 and one line, no traceback."""
+    command = _CHILD + (
+        "import builtins, os, _nhjax_command\n"
+        "real = builtins.__import__\n"
+        "def interrupting(name, *args, **kwargs):\n"
+        "    if name == 'jax':\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "    return real(name, *args, **kwargs)\n"
+        "builtins.__import__ = interrupting\n"
+        "sys.exit(_nhjax_command.main(sys.argv[1:]))\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", command, *_ARGUMENTS, "--out", str(tmp_path / "x.npz")],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert run.returncode == 130, run.stderr
+    assert run.stderr.strip() == "nhjax: interrupted"
+
+
 def test_simulate_help_names_every_option_system_and_method():
     out = _run("simulate", "--help")
     assert out.returncode == 0
@@ -123,6 +187,8 @@ def test_simulate_help_names_every_option_system_and_method():
         assert name in out.stdout, name
     for name in (*SYSTEMS, *METHODS):
         assert f"\n  {name}" in out.stdout, name
+    # A name longer than its column stands on its own line, not glued to its text.
+    assert "\n  dopri8-projection\n" in out.stdout and "\n  MODULE:FACTORY\n" in out.stdout
 
 
 def test_simulate_composes_to_higher_order(tmp_path):

@@ -50,6 +50,18 @@ USER_MODULE = textwrap.dedent(
     def wrong_state():
         system, (q0, p0), args = factory()
         return system, (q0, p0[:2]), args
+
+
+    def raises():
+        raise RuntimeError("no such part")
+
+
+    def needs_an_argument(stiffness):
+        return factory()
+
+
+    def exits():
+        raise SystemExit(0)
     """
 )
 
@@ -142,6 +154,9 @@ def test_an_interrupted_run_resumes_from_its_chunks(folder):
         ("particle:not_a_tuple", "must return (system, (q0, p0), args), the system a NonholonomicSystem; it returned NonholonomicSystem"),
         ("particle:wrong_system", "its system is a str"),
         ("particle:wrong_state", "returned an initial state that does not fit its system"),
+        ("particle:raises", "particle:raises() failed (it is called with no arguments): RuntimeError: no such part"),
+        ("particle:needs_an_argument", "particle:needs_an_argument() failed (it is called with no arguments): TypeError"),
+        ("particle:exits", "particle:exits() failed (it is called with no arguments): SystemExit: 0"),
     ],
 )
 def test_a_factory_that_cannot_be_used_is_named_with_its_problem(folder, system, message):
