@@ -2,6 +2,7 @@
 run, one `.npz` file a chunk with what identifies it and a checksum, result codes as
 integers, atomic writes, and the chunks joined back into one `nhjax.Solution`."""
 
+import contextlib
 import hashlib
 import json
 import os
@@ -17,6 +18,12 @@ import numpy as np
 
 from ._integrate import Solution
 from ._results import RESULTS
+
+
+try:
+    import fcntl
+except ImportError:  # Windows: no locks (`run_lock`)
+    fcntl = None
 
 
 FORMAT = 3
@@ -184,6 +191,34 @@ def join_chunks(chunks, treedef, n_saved, time_axis) -> Solution:
 _MEANINGS = {
     "computation": " (what the system's functions compute: a function's body, or a constant it uses, has changed)",
 }
+
+
+_LOCK = ".lock"
+
+
+@contextlib.contextmanager
+def run_lock(directory: pathlib.Path):
+    """Hold an exclusive lock on `directory` (`fcntl.flock` on its `.lock` file) while a
+    run writes there; a second process that tries gets a `RuntimeError` naming the
+    directory, where it would otherwise delete the first one's temporary files. The
+    lock goes with the process (a killed run leaves none behind). Where `fcntl` is
+    missing (Windows) nothing is locked."""
+    directory.mkdir(parents=True, exist_ok=True)
+    if fcntl is None:
+        yield
+        return
+    with open(directory / _LOCK, "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise RuntimeError(
+                f"Another process is writing chunks in {directory} (it holds {directory / _LOCK}). "
+                "Wait for it to finish, or use another directory."
+            ) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def open_run(directory: pathlib.Path, manifest: dict) -> None:

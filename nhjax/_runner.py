@@ -23,6 +23,7 @@ from ._chunk_files import (
     load_verified,
     open_run,
     run_id,
+    run_lock,
     SUCCESS,
     with_identity,
     write_atomically,
@@ -78,7 +79,9 @@ def run_chunked(
     than the end of the chunk before it, is never used: a `RuntimeWarning` names the
     file and the reason, and the chunk is computed again (it is derived data; its
     recomputation is bit-identical to an uninterrupted run). A missing chunk is
-    computed again too. One process at a time per directory.
+    computed again too. One process at a time per directory: a run holds a lock on it
+    (`fcntl.flock` on `directory/.lock`, where the platform has it), and a second one
+    raises a `RuntimeError` naming the directory.
 
     **What a chunk boundary does.** Each chunk starts the method afresh from the saved
     state $(q, p)$: solver state (such as a root finder's starting guess) is not carried
@@ -153,56 +156,57 @@ def run_chunked(
         dtype=str(dtype),
         batch=batch,
     )
-    open_run(directory, manifest)
-    run = run_id(manifest)
+    with run_lock(directory):
+        open_run(directory, manifest)
+        run = run_id(manifest)
 
-    n_chunks = math.ceil(n_steps / chunk_steps)
-    time_axis = 0 if batch is None else 1
-    dt = jnp.asarray(dt, dtype=dtype)
-    traced_args = trace_floats(args)
-    chunks = []
-    state = leaves
-    with tqdm(
-        total=n_steps,
-        unit="step",
-        disable=not progress,
-        desc=f"{type(method).__name__}, {n_chunks} chunk{'s' * (n_chunks > 1)}",
-    ) as bar:
-        for index in range(n_chunks):
-            first_step = index * chunk_steps
-            length = min(chunk_steps, n_steps - first_step)
-            path = chunk_path(directory, index)
-            identity = dict(
-                run=run, index=index, first_step=first_step, n_steps=length,
-                start=fingerprint(list(state)),
-            )
-            expected_saves = length // save_every + (index == 0)
-            chunk = load_verified(path, identity, expected_saves, time_axis)
-            if chunk is None:
-                # t0 = first_step * dt, exactly as nhjax.integrate spaces its steps.
-                t0 = dt * jnp.asarray(first_step, dtype=dtype)
-                solution = _run_chunk(
-                    system, method, jax.tree.unflatten(treedef, state), dt, t0, traced_args,
-                    n_steps=length, save_every=save_every, batched=batch is not None,
+        n_chunks = math.ceil(n_steps / chunk_steps)
+        time_axis = 0 if batch is None else 1
+        dt = jnp.asarray(dt, dtype=dtype)
+        traced_args = trace_floats(args)
+        chunks = []
+        state = leaves
+        with tqdm(
+            total=n_steps,
+            unit="step",
+            disable=not progress,
+            desc=f"{type(method).__name__}, {n_chunks} chunk{'s' * (n_chunks > 1)}",
+        ) as bar:
+            for index in range(n_chunks):
+                first_step = index * chunk_steps
+                length = min(chunk_steps, n_steps - first_step)
+                path = chunk_path(directory, index)
+                identity = dict(
+                    run=run, index=index, first_step=first_step, n_steps=length,
+                    start=fingerprint(list(state)),
                 )
-                chunk = chunk_arrays(solution, keep_first=index == 0, time_axis=time_axis)
-                stored = with_identity(chunk, identity)
-                write_atomically(path, lambda file: np.savez(file, **stored))
-            chunks.append(chunk)
-            bar.update(length)
-            failed = chunk["result"] != SUCCESS
-            if np.any(failed):
-                if throw:
-                    span = (float(dt * first_step), float(dt * (first_step + length)))
-                    raise RuntimeError(
-                        f"Chunk {index + 1} of {n_chunks} (steps {first_step} to "
-                        f"{first_step + length}, t = {span[0]:g} to {span[1]:g}) failed"
-                        f"{failures(chunk['result'])} It is recorded in {path}; delete "
-                        f"{directory} to run it again."
+                expected_saves = length // save_every + (index == 0)
+                chunk = load_verified(path, identity, expected_saves, time_axis)
+                if chunk is None:
+                    # t0 = first_step * dt, exactly as nhjax.integrate spaces its steps.
+                    t0 = dt * jnp.asarray(first_step, dtype=dtype)
+                    solution = _run_chunk(
+                        system, method, jax.tree.unflatten(treedef, state), dt, t0, traced_args,
+                        n_steps=length, save_every=save_every, batched=batch is not None,
                     )
-                if batch is None:
-                    break
-            state = [np.take(chunk[f"y_{i}"], -1, axis=time_axis) for i in range(len(leaves))]
+                    chunk = chunk_arrays(solution, keep_first=index == 0, time_axis=time_axis)
+                    stored = with_identity(chunk, identity)
+                    write_atomically(path, lambda file: np.savez(file, **stored))
+                chunks.append(chunk)
+                bar.update(length)
+                failed = chunk["result"] != SUCCESS
+                if np.any(failed):
+                    if throw:
+                        span = (float(dt * first_step), float(dt * (first_step + length)))
+                        raise RuntimeError(
+                            f"Chunk {index + 1} of {n_chunks} (steps {first_step} to "
+                            f"{first_step + length}, t = {span[0]:g} to {span[1]:g}) failed"
+                            f"{failures(chunk['result'])} It is recorded in {path}; delete "
+                            f"{directory} to run it again."
+                        )
+                    if batch is None:
+                        break
+                state = [np.take(chunk[f"y_{i}"], -1, axis=time_axis) for i in range(len(leaves))]
     return join_chunks(chunks, treedef, n_steps // save_every + 1, time_axis)
 
 

@@ -240,3 +240,21 @@ def test_a_method_whose_constraint_drifts_continues_across_chunks(tmp_path):
     assert refused.result == nh.RESULTS.constraint_violated_initially
     accepted = nh.integrate(GEARBOX.canonical, method, drifted, 0.1, 10, check_constraint=False)
     assert accepted.result == nh.RESULTS.successful
+
+
+def test_a_second_writer_of_one_directory_is_refused(tmp_path):
+    """Another process holding the directory's lock (here this one, through a second
+    open file, as flock locks are per open file): refused, naming the directory, with
+    nothing deleted; once released, the run goes ahead."""
+    fcntl = pytest.importorskip("fcntl")
+    directory = tmp_path / "chunks"
+    directory.mkdir()
+    leftover = directory / ".chunk_00000.npz.abcd.tmp"  # another writer's file in flight
+    leftover.write_bytes(b"partial")
+    with open(directory / ".lock", "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(RuntimeError, match=f"Another process is writing chunks in {directory}"):
+            _chunked(directory, n_steps=20, chunk_steps=10)
+        assert leftover.exists()
+        fcntl.flock(held, fcntl.LOCK_UN)
+    assert _chunked(directory, n_steps=20, chunk_steps=10).result == nh.RESULTS.successful
