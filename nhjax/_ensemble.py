@@ -90,6 +90,9 @@ def integrate_ensemble(
     devices = jax.devices() if devices is None else list(devices)
     if not devices:
         raise ValueError("devices must name at least one device.")
+    if len(set(devices)) != len(devices):
+        repeated = sorted({str(device) for device in devices if devices.count(device) > 1})
+        raise ValueError(f"devices must be distinct (each takes its own share of the batch); repeated: {', '.join(repeated)}.")
     mesh = Mesh(np.asarray(devices), (_AXIS,))
     padded_size = -(-size // len(devices)) * len(devices)
     padded = jax.tree.map(

@@ -246,6 +246,10 @@ class NonholonomicSystem(AbstractSystem):
         if jnp.shape(q) != jnp.shape(p):
             raise ValueError(f"q and p must have the same shape, got {jnp.shape(q)} and {jnp.shape(p)}.")
         (n,) = jnp.shape(q)
+        if isinstance(self.hamiltonian, LegendreHamiltonian):
+            # Before the Hamiltonian's shape, which a Lagrangian of the wrong shape fails
+            # deep inside the Legendre transform.
+            require_scalar("lagrangian(q, qdot, args)", jax.eval_shape(self.hamiltonian.lagrangian, q, p, args))
         require_scalar("hamiltonian(q, p, args)", jax.eval_shape(self.hamiltonian, q, p, args))
         a = jax.eval_shape(self.constraints, q, args)
         if len(a.shape) != 2 or a.shape[1] != n or not 1 <= a.shape[0] < n:

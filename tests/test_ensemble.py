@@ -96,6 +96,12 @@ def test_bad_input(y0s, dt, match):
         nh.integrate_ensemble(GEARBOX.canonical, METHOD, y0s, dt, 10)
 
 
+def test_a_device_named_twice_is_refused():
+    device = jax.devices()[0]
+    with pytest.raises(ValueError, match=f"devices must be distinct .*repeated: {device}"):
+        nh.integrate_ensemble(GEARBOX.canonical, METHOD, _states(2), 0.1, 10, devices=[device, device])
+
+
 _TWO_DEVICES = textwrap.dedent(
     """
     import json

@@ -156,3 +156,10 @@ def test_momenta_of_a_singular_mass_matrix_are_refused_naming_it():
     healthy = nh.NonholonomicSystem.from_lagrangian(lambda q, qdot, args: 0.5 * qdot @ qdot - 0.5 * q @ q, _constraints)
     p = healthy.momentum_from_velocity(jnp.array([0.3, -0.2, 0.1]), jnp.array([0.5, 0.4, -0.1]), None)
     np.testing.assert_allclose(p, [0.5, 0.4, -0.1], rtol=1e-15)
+
+
+def test_a_lagrangian_that_is_not_a_scalar_is_refused_naming_it():
+    system = nh.NonholonomicSystem.from_lagrangian(lambda q, qdot, args: jnp.stack([qdot @ qdot, q @ q]), _constraints)
+    y0 = (jnp.array([0.3, -0.2, 0.1]), jnp.array([0.5, 0.4, -0.1]))
+    with pytest.raises(ValueError, match=r"lagrangian\(q, qdot, args\) must return a scalar, got \(2,\)"):
+        nh.integrate(system, nh.SIDLA(), y0, 0.1, 5)

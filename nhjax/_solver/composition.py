@@ -15,6 +15,7 @@ from jaxtyping import Array, Int
 
 from .._results import first_failure, RESULTS
 from .base import AbstractMethod, AbstractMethodState, MethodState, step_return
+from .projection import Projection
 
 
 def _symmetric(half: Sequence[float]) -> tuple[float, ...]:
@@ -94,6 +95,18 @@ _COEFFICIENT_TOLERANCE = 1e-12
 
 def _is_int(value) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _not_composable(solver) -> str:
+    """Why a solver that is not an nhjax method cannot be composed."""
+    if isinstance(solver, Projection):
+        return (
+            "A projected step is not symmetric, whatever the solver it wraps: the projection "
+            "onto the invariants does not commute with reversing time (nhjax.Projection), so "
+            "composition would not raise its order; Projection(diffrax.Dopri8()) is of order 8 "
+            "already."
+        )
+    return "diffrax's explicit Runge-Kutta solvers are not symmetric, and composing them does not raise their order this way."
 
 
 def _validated_coefficients(coefficients, order) -> tuple[float, ...]:
@@ -220,8 +233,7 @@ class Composition(diffrax.AbstractSolver):
         if not isinstance(method, AbstractMethod):
             raise ValueError(
                 "Composition composes nhjax methods, whose steps solve for a signed step "
-                f"size; got {type(method).__name__}. diffrax's explicit Runge-Kutta solvers "
-                "are not symmetric, and composing them does not raise their order this way."
+                f"size; got {type(method).__name__}. " + _not_composable(method)
             )
         if not method.is_symmetric() and method.adjoint() is None:
             raise ValueError(

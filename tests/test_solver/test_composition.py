@@ -344,6 +344,8 @@ def test_every_symmetric_method_composes():
 def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="not symmetric"):
         nh.Composition(diffrax.Tsit5())
+    with pytest.raises(ValueError, match="A projected step is not symmetric"):
+        nh.Composition(nh.Projection(diffrax.Dopri8()))
     with pytest.raises(ValueError, match="one of \\[2, 4, 6, 8\\]"):
         nh.Composition(nh.GonzalezR(), 5)
     with pytest.raises(ValueError, match="one of"):
