@@ -1,5 +1,5 @@
 """Every method at any amplitude and wherever an angle has wound to: small oscillations
-about a stable equilibrium of the gearbox (|p| from 1e-12 to 1) and the same run with
+about a stable equilibrium of the gearbox (|p| from 1e-12 to 1, and 0: at rest) and the same run with
 its pendulum angle wound by 2 pi k (k up to 1e6), over the methods of
 `tests/helpers.py` and the projected Dopri8; GONZALEZ (adapted coordinates) on a
 pendulum written as a skew-gradient system.
@@ -36,7 +36,7 @@ from ..helpers import CANONICAL_METHODS, KEEPS_CONSTRAINT, KEEPS_ENERGY, METHODS
 
 EPS = float(jnp.finfo(jnp.float64).eps)
 GEARBOX = nh.examples.gearbox()
-AMPLITUDES = (1e-12, 1e-8, 1e-4, 1e-2, 1.0)
+AMPLITUDES = (1e-12, 1e-8, 1e-4, 1e-2, 1.0, 0.0)  # down to rest
 WINDINGS = (0, 1_000, 10_000, 1_000_000)
 H = 0.1
 AMPLITUDE_STEPS = 200
@@ -113,8 +113,9 @@ def _check_invariants(name, solution, steps):
         assert bool(jnp.all(drift <= 4 * math.sqrt(steps) * roundoff)), drift / roundoff
     if name in CONSTRAINT_KEEPERS:
         roundoff = jax.vmap(jax.vmap(lambda q, p: _constraint_roundoff(system, q, p)))(q, p)
-        worst = jnp.max(jnp.abs(solution.constraint) / roundoff[..., None], axis=(1, 2))
-        assert bool(jnp.all(worst <= 16)), worst
+        residual = jnp.abs(solution.constraint)
+        # At rest both are exactly zero.
+        assert bool(jnp.all(residual <= 16 * roundoff[..., None])), jnp.max(residual / roundoff[..., None], axis=(1, 2))
 
 
 @pytest.mark.parametrize("name", CASES)
@@ -159,7 +160,7 @@ def test_gonzalez_on_a_pendulum_at_small_amplitudes_and_wound_up():
     system = _pendulum()
     method = METHODS["gonzalez"]
     rest = math.asin(-0.1)
-    starts = [jnp.array([rest, a]) for a in AMPLITUDES] + [jnp.array([0.3 + 2 * math.pi * k, 1.5]) for k in WINDINGS]
+    starts = [jnp.array([rest, a]) for a in AMPLITUDES[:-1]] + [jnp.array([0.3 + 2 * math.pi * k, 1.5]) for k in WINDINGS]
     solution = jax.jit(jax.vmap(lambda x: nh.integrate(system, method, x, H, WINDING_STEPS, throw=False)))(
         jnp.stack(starts)
     )
