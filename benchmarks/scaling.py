@@ -1,0 +1,169 @@
+"""How the cost of a step grows with the size of the system, every method for
+NonholonomicSystems against a dense implicit-midpoint yardstick of the same size, all
+timed in one process.
+
+The family (synthetic; a real one, such as a car pulling n trailers, is to come): n
+coordinates, k = n/4 constraint rows,
+
+    H = |p|^2/2 + |q|^2/2 + sum_i (1 - cos(q_i - q_{i-1})),
+    row j of A(q): 1 at 4j, sin(q_{4j+1}) at 4j+2, cos(q_{4j+3})/2 at 4j+3,
+
+smooth and nonlinear, of full rank everywhere (row j alone has a 1 in column 4j). Steps
+of h = 0.05 from a fixed state on the constraint; the number of steps falls with n
+(`_steps`) so that the slowest runs stay within minutes.
+
+For each n and method: median µs/step (`--repeats` timed runs after a warm-up),
+root-finder iterations per step, compile seconds, and the process's peak resident
+memory after the case (`ru_maxrss`, a high-water mark: it only grows). The yardstick
+solves y' = y + h f((y + y')/2), f = (p, -grad V(q)) of the same V, by three Newton
+iterations a step with a dense Jacobian (`jax.jacfwd`, `jnp.linalg.solve`). The fitted
+growth exponent of each method is the slope of log(µs/step) against log(n) over the
+sizes from 16 on.
+
+Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R]
+Results go to benchmarks/results/scaling.json and a log-log plot beside it,
+scaling.png.
+"""
+
+import argparse
+import pathlib
+import resource
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+jax.config.update("jax_enable_x64", True)
+
+import nhjax as nh  # noqa: E402
+from _timing import run_and_time, timed, write  # noqa: E402
+from nhjax._methods import METHODS  # noqa: E402
+
+
+H = 0.05
+
+
+def hamiltonian(q, p, args):
+    del args
+    return 0.5 * p @ p + 0.5 * q @ q + jnp.sum(1 - jnp.cos(q[1:] - q[:-1]))
+
+
+def constraints(q, args):
+    del args
+    n = q.shape[0]
+    k = n // 4
+    rows = jnp.arange(k)
+    a = jnp.zeros((k, n), q.dtype)
+    a = a.at[rows, 4 * rows].set(1.0)
+    a = a.at[rows, 4 * rows + 2].set(jnp.sin(q[4 * rows + 1]))
+    return a.at[rows, 4 * rows + 3].set(0.5 * jnp.cos(q[4 * rows + 3]))
+
+
+SYSTEM = nh.NonholonomicSystem(hamiltonian, constraints)
+
+
+def initial_state(n):
+    q = 0.3 * jnp.sin(jnp.arange(n, dtype=jnp.float64) + 1.0)
+    p = jnp.cos(0.7 * jnp.arange(n, dtype=jnp.float64))
+    return q, SYSTEM.project_momentum(q, p)
+
+
+def _steps(n):
+    return max(20, 40_000 // n**2)
+
+
+def _yardstick(y0, steps):
+    n = y0.shape[0] // 2
+    gradient = jax.grad(lambda q: hamiltonian(q, jnp.zeros_like(q), None))
+
+    def field(y):
+        return jnp.concatenate([y[n:], -gradient(y[:n])])
+
+    def step(y, _):
+        def newton(z, _):
+            def residual(z):
+                return z - y - H * field(0.5 * (y + z))
+
+            return z - jnp.linalg.solve(jax.jacfwd(residual)(z), residual(z)), None
+
+        return jax.lax.scan(newton, y, None, length=3)[0], None
+
+    return jax.lax.scan(step, y0, None, length=steps)[0]
+
+
+def _peak_mib():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _case(run, argument, repeats, steps):
+    compile_s = timed(lambda a: run.lower(a).compile(), argument)
+    output, seconds = run_and_time(run, argument, repeats=repeats)
+    return output, dict(us_per_step=seconds / steps * 1e6, compile_s=compile_s, peak_rss_mib=_peak_mib())
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", default="4,8,16,32,64")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "scaling.json"))
+    options = parser.parse_args()
+    sizes = [int(size) for size in options.sizes.split(",")]
+    methods = {name: method for name, method in METHODS.items() if not method.adapted}
+
+    table = {}
+    for n in sizes:
+        steps = _steps(n)
+        y0 = initial_state(n)
+        row = dict(k=n // 4, steps=steps)
+        _, row["yardstick"] = _case(jax.jit(lambda y: _yardstick(y, steps)), jnp.concatenate(y0), options.repeats, steps)
+        for name, method in methods.items():
+            solver = method.solver
+            run = jax.jit(lambda y: nh.integrate(SYSTEM, solver, y, H, steps, save_every=steps, throw=False))
+            solution, figures = _case(run, y0, options.repeats, steps)
+            total = solution.stats.get("root_find_steps")
+            figures["iterations_per_step"] = None if total is None else float(total) / steps
+            figures["successful"] = bool(solution.result == nh.RESULTS.successful)
+            row[name] = figures
+        table[n] = row
+        print(
+            f"n = {n:3d}, k = {n // 4:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
+            + "; ".join(f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s)" for name in methods),
+            flush=True,
+        )
+
+    large = [n for n in sizes if n >= 16]
+    growth = {}
+    for name in ["yardstick", *methods]:
+        if len(large) >= 2:
+            times = [table[n][name]["us_per_step"] for n in large]
+            growth[name] = float(np.polyfit(np.log(large), np.log(times), 1)[0])
+    for name, exponent in growth.items():
+        print(f"  {name:<18} grows like n^{exponent:.2f} from n = {large[0]} to {large[-1]}")
+
+    write(dict(system="synthetic: H = |p|^2/2 + |q|^2/2 + sum(1 - cos(q_i - q_{i-1})), k = n/4 rows", h=H,
+               sizes=table, growth_exponent_from_16=growth), options.out)
+    _plot(table, ["yardstick", *methods], pathlib.Path(options.out).with_suffix(".png"))
+
+
+def _plot(table, names, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sizes = sorted(table)
+    figure, axes = plt.subplots(figsize=(6, 4.5))
+    for name in names:
+        axes.loglog(sizes, [table[n][name]["us_per_step"] for n in sizes], "o-", label=name)
+    axes.set_xlabel("n (coordinates), k = n/4 constraints")
+    axes.set_ylabel("µs per step")
+    axes.set_title("Cost of a step against the size of the system")
+    axes.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
