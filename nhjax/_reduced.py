@@ -233,7 +233,12 @@ class ReducedSystem(eqx.Module):
         $\Pi$. The frame's derivative enters both through
         $J = \partial_q(X^Tp)$ (`contracted_frame_derivative`), formed once."""
         p, y = self.momentum_in_frame(q, frame, rho, args)
-        contracted = self.contracted_frame_derivative(q, p, args)
+        return self.bracket_and_gradient_with(q, p, y, frame, self.contracted_frame_derivative(q, p, args), args)
+
+    def bracket_and_gradient_with(self, q, p, y, frame, contracted, args):
+        r"""`bracket_and_gradient_in_frame` from the momentum $p$, the velocity in the
+        frame $y$ and a given $J$ = `contracted` (`contracted_frame_derivative`): with
+        the $J$ of another point, an approximation (`nhjax.GonzalezR.chord_jacobian`)."""
         along_frame = contracted @ frame
         if self._identity_metric() and self.derivative == "autodiff":
             grad_q = jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)

@@ -9,7 +9,9 @@ $u \leftarrow u - \tilde J^{-1}F(u)$ still contracts by a factor $O(h^3)$ per
 iteration, at a fraction of the cost of Newton's method. The converged root is the same
 (to the tolerance), and derivatives of the root with respect to the inputs come from
 the implicit function theorem with the exact Jacobian of $F$
-(`nhjax._solver.base._implicit_root`), so they are exact too.
+(`nhjax._solver.base._implicit_root`), so they are exact too. (GONZALEZ-R's matrix
+leaves out the variation of the frame's derivative too, an $O(h)$ change that costs a
+few iterations and saves $O(n^4)$ work: `nhjax.GonzalezR.chord_jacobian`.)
 """
 
 from typing import Any

@@ -2,12 +2,13 @@ r"""GONZALEZ-R (§3.3): the Gonzalez discrete-gradient method on the reduced sys
 evaluated from $H$ and $A$ alone.
 
 **What a step costs.** One chord matrix (`GonzalezR.chord_jacobian`: the field at the
-predictor's midpoint and at $n$ shifted positions, each shift with its own frame and
-frame derivative through the QR, the $\rho$ columns by forward-mode autodiff, and the
-inverse, `nhjax._solver.chord.chord_inverse`), then about four residuals (the field at
-the midpoint, and $\mathcal{H}$ at $\zeta'$ for the Gonzalez correction). The chord
-matrix costs several residuals, and its $n$ frame derivatives at shifted positions
-dominate as $n$ grows. The frame's derivative is only ever needed contracted with $p$,
+predictor's midpoint and at $n$ shifted positions, each shift with its own frame through
+the QR and the midpoint's frame derivative, the $\rho$ columns by forward-mode
+autodiff, and the inverse, `nhjax._solver.chord.chord_inverse`), then about four
+residuals (the field at the midpoint, and $\mathcal{H}$ at $\zeta'$ for the Gonzalez
+correction). The chord matrix costs several residuals; as $n$ grows, the frame
+derivative's $n$ tangents in every residual come to dominate
+(`benchmarks/scaling.py`). The frame's derivative is only ever needed contracted with $p$,
 as $\partial_q(X^Tp)$ (`nhjax._reduced.ReducedSystem.contracted_frame_derivative`):
 $n$ tangents of $k$ reflections of one vector, not of the $n \times m$ frame. Where
 $\partial H/\partial p$ does not depend on $q$ (checked on its program), the metric is
@@ -253,31 +254,44 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
           $\bar q$ held fixed (it does not depend on $\rho$);
         - the $n$ columns for $q$ by forward differences of $\Pi\nabla\mathcal{H}$
           with increments $\sqrt{\varepsilon}(1 + |\bar q_i|)$, evaluated together
-          (`vmap`).
+          (`vmap`), each shifted point with its own frame but with the frame
+          derivative $J = \partial_q(X^Tp)$ of the midpoint
+          (`nhjax._reduced.ReducedSystem.bracket_and_gradient_with`).
 
         Forward-mode differentiation of the $q$ columns would carry second
-        derivatives of the Householder frame through the QR. The differences need only
-        $n$ more evaluations of the field, and their relative error,
-        $O(\sqrt{\varepsilon})$, changes the chord iteration's contraction factor by
-        $O(h\sqrt{\varepsilon})$: the iteration counts are those of the exact matrix,
-        and the root is the same. With `jax.jacfwd` of the simplified residual instead,
-        whole steps take 1.17-1.31x the time on the gearbox, 1.21-1.46x on the $n = 3$
-        quartic and 1.38-1.62x at $n = 10$ (two runs of
-        `benchmarks/gonzalez_r_variants.py`).
-        Derivatives of the root do not use this matrix (see `nhjax._solver.chord`)."""
+        derivatives of the Householder frame through the QR; so would the differences
+        with $J$ recomputed at each shifted point, $n$ forward passes of $n$ tangents
+        each, $O(n^4)$ work that made the matrix most of a step from $n = 16$ on
+        (`benchmarks/scaling.py`). Leaving out $J$'s variation changes the matrix by
+        $O(h)$ at most times the frame's second derivatives ($O(h^2)$ on the $n = 3$
+        quartic), and the chord iteration's contraction factor by as much, against
+        $O(h^3)$ otherwise: on the gearbox the iteration counts are those of the
+        exact matrix, on the $n = 3$ quartic 9% more,
+        on the synthetic systems of `benchmarks/scaling.py` 10-25% more, and the root
+        is the same. `benchmarks/gonzalez_r_variants.py` times whole steps with
+        `jax.jacfwd` of the simplified residual instead. Derivatives of the root do
+        not use this matrix (see `nhjax._solver.chord`)."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         midpoint = zeta + 0.5 * scale * u
         q, rho = split_reduced(midpoint, reduced.signs)
+        frame = reduced.system.frame(q, args, reduced.signs)
 
         def field(q, rho, frame):
             return adapted_structure_times(frame, *reduced.bracket_and_gradient_in_frame(q, rho, frame, args))
 
-        frame = reduced.system.frame(q, args, reduced.signs)
-        at_midpoint = field(q, rho, frame)
+        p, _ = reduced.momentum_in_frame(q, frame, rho, args)
+        contracted = reduced.contracted_frame_derivative(q, p, args)
+
+        def field_with_midpoint_derivative(x):
+            shifted_frame = reduced.system.frame(x, args, reduced.signs)
+            p, y = reduced.momentum_in_frame(x, shifted_frame, rho, args)
+            return adapted_structure_times(
+                shifted_frame, *reduced.bracket_and_gradient_with(x, p, y, shifted_frame, contracted, args)
+            )
+
+        at_midpoint = field_with_midpoint_derivative(q)
         increments = jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.abs(q))
-        shifted = jax.vmap(lambda x: field(x, rho, reduced.system.frame(x, args, reduced.signs)))(
-            q + jnp.diag(increments)
-        )
+        shifted = jax.vmap(field_with_midpoint_derivative)(q + jnp.diag(increments))
         along_q = ((shifted - at_midpoint) / increments[:, None]).T
         along_rho = jax.jacfwd(lambda r: field(q, r, frame))(rho)
         field_jacobian = jnp.concatenate([along_q, along_rho], axis=1)
