@@ -222,7 +222,7 @@ class Gradient(eqx.Module):
         return jax.grad(self.f)(x, args)
 
 
-Branch = Literal["cond", "rarely", "printed"]
+Branch = Literal["cond", "rarely"]
 
 
 # How far, in roundings of the two values, the quadrature may stray from the printed
@@ -264,9 +264,8 @@ def gonzalez_correction(
     default `segment = (Gradient(f), x, x1)`) where it agrees with the values'
     difference to a few roundings (`_validated_difference`), as `gonzalez` describes.
 
-    `branch`: `"cond"` (differentiable), `"rarely"` (values only,
-    `nhjax._rare_branch`), or `"printed"`: the difference of the values down to
-    $\delta = 0$, where the result is $g$. With `"cond"` and `taylor=True` ($g$ must
+    `branch`: `"cond"` (differentiable) or `"rarely"` (values only,
+    `nhjax._rare_branch`). With `"cond"` and `taylor=True` ($g$ must
     then be $\nabla f(\bar x)$), where the quadrature is taken the correction's
     derivatives are those of its Taylor expansion about $\bar x$,
     $\tfrac{1}{24}D^3f(\bar x)[\hat\delta, \hat\delta, \hat\delta]|\delta|\delta$
@@ -288,8 +287,6 @@ def gonzalez_correction(
         numerator = difference - gradient @ delta
         return (numerator / jnp.where(zero, 1.0, squared_length)) * jnp.where(zero, 0.0, delta)
 
-    if branch == "printed":
-        return gradient + correction(printed)
     rounding = jax.lax.stop_gradient(float(jnp.finfo(x.dtype).eps) * (jnp.abs(f_x) + jnp.abs(f_x1)))
     operands = ((Gradient(f), x, x1) if segment is None else segment) + (args, printed, rounding)
     near = jnp.all(_is_near(x, x1, delta))
