@@ -279,19 +279,20 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         def field(q, rho, frame):
             return adapted_structure_times(frame, *reduced.bracket_and_gradient_in_frame(q, rho, frame, args))
 
-        p, _ = reduced.momentum_in_frame(q, frame, rho, args)
+        p, y = reduced.momentum_in_frame(q, frame, rho, args)
         contracted = reduced.contracted_frame_derivative(q, p, args)
 
-        def field_with_midpoint_derivative(x):
-            shifted_frame = reduced.system.frame(x, args, reduced.signs)
-            p, y = reduced.momentum_in_frame(x, shifted_frame, rho, args)
-            return adapted_structure_times(
-                shifted_frame, *reduced.bracket_and_gradient_with(x, p, y, shifted_frame, contracted, args)
-            )
+        def field_with_midpoint_derivative(x, frame, p, y):
+            return adapted_structure_times(frame, *reduced.bracket_and_gradient_with(x, p, y, frame, contracted, args))
 
-        at_midpoint = field_with_midpoint_derivative(q)
+        def shifted_field(x):
+            shifted_frame = reduced.system.frame(x, args, reduced.signs)
+            return field_with_midpoint_derivative(x, shifted_frame, *reduced.momentum_in_frame(x, shifted_frame, rho, args))
+
+        # At the midpoint itself, the frame and momentum already formed above.
+        at_midpoint = field_with_midpoint_derivative(q, frame, p, y)
         increments = jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.abs(q))
-        shifted = jax.vmap(field_with_midpoint_derivative)(q + jnp.diag(increments))
+        shifted = jax.vmap(shifted_field)(q + jnp.diag(increments))
         along_q = ((shifted - at_midpoint) / increments[:, None]).T
         along_rho = jax.jacfwd(lambda r: field(q, r, frame))(rho)
         field_jacobian = jnp.concatenate([along_q, along_rho], axis=1)
