@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._linalg import product
 
 
 def adapted_structure(
@@ -21,16 +20,6 @@ def adapted_structure(
     top = jnp.concatenate([jnp.zeros((n, n), frame.dtype), frame], axis=1)
     bottom = jnp.concatenate([-frame.T, bracket], axis=1)
     return jnp.concatenate([top, bottom], axis=0)
-
-
-def adapted_structure_times(
-    frame: Float[Array, "n m"], bracket: Float[Array, "m m"], vector: Float[Array, " n+m"]
-) -> Float[Array, " n+m"]:
-    r"""$\Pi v$ for $\Pi$ = `adapted_structure(frame, bracket)`, without forming $\Pi$:
-    $(X v_\rho,\ -X^T v_q + C v_\rho)$."""
-    n = frame.shape[0]
-    along_q, along_rho = vector[:n], vector[n:]
-    return jnp.concatenate([product(frame, along_rho), product(bracket, along_rho) - product(along_q, frame)])
 
 
 def momentum_to_adapted(frame, p):

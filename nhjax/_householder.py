@@ -15,11 +15,14 @@ different points of one step belong to the same basis vector fields. Every opera
 a plain `jax.numpy` operation, so `jax.jacfwd` through `householder_frame` gives
 $\partial X/\partial q$: this replaces the paper's Algorithm 1 (its second half is the
 forward-mode derivative of its first). Where only products $X^Tv$ are needed,
-`householder_frame_transpose_times` forms them from the reflectors without forming
-$X$, and its derivative is a derivative of $k$ reflections of one vector.
+`HouseholderFrame` forms them from the reflectors without forming $X$ ($O(nk)$ per
+product instead of $O(nmk)$ for $X$), and the derivative of such a product is a
+derivative of $k$ reflections of one vector.
 """
 
+import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._linalg import safe_norm
@@ -31,17 +34,25 @@ def _reflectors(a_t, signs):
     n, k = a_t.shape
     r = a_t
     vectors, pivots, norms, used = [], [], [], []
+    # Every vector at full length n, masked below the pivot rather than sliced: the
+    # same arithmetic in far fewer operations (slices, pads and their derivatives'
+    # scatters), which on XLA:CPU set the cost of the small factorisations here.
     for j in range(k):
-        x = r[j:, j]
+        below = np.arange(n) >= j
+        x = jnp.where(below, r[:, j], 0.0)
+        leading = r[j, j]
         # Finite derivatives at x = 0, where the factorisation breaks down and the caller
         # reports rank deficiency.
         norm = safe_norm(x)
-        sign = jnp.where(x[0] >= 0, 1.0, -1.0).astype(a_t.dtype) if signs is None else signs[j]
-        length_sq = 2 * (norm**2 + sign * x[0] * norm)
+        sign = jnp.where(leading >= 0, 1.0, -1.0).astype(a_t.dtype) if signs is None else signs[j]
+        length_sq = 2 * (norm**2 + sign * leading * norm)
         length = jnp.sqrt(jnp.where(length_sq > 0, length_sq, 1.0))
-        w = x.at[0].add(sign * norm) / length
-        r = r.at[j:, :].add(-2 * jnp.outer(w, w @ r[j:, :]))
-        vectors.append(jnp.concatenate([jnp.zeros((j,), a_t.dtype), w]))
+        w = (x + jnp.where(np.arange(n) == j, sign * norm, 0.0)) / length
+        # The columns before j are not read again, and column j's image is known
+        # (-s_j|x|e_1): only the columns after j need the reflection, but reflecting
+        # all k keeps the shapes fixed.
+        r = r - 2 * jnp.outer(w, w @ r)
+        vectors.append(w)
         pivots.append(jnp.sqrt(jnp.maximum(length_sq, 0.0) / 2))
         norms.append(norm)
         used.append(sign)
@@ -65,6 +76,65 @@ def householder_signs(a_t: Float[Array, "n k"]) -> Float[Array, " k"]:
     return _reflectors(a_t, None)[3]
 
 
+class HouseholderFrame(eqx.Module):
+    r"""The frame $X = H_1\cdots H_k[0; I_m]$ of $\ker A$ as its $k$ unit Householder
+    vectors $w_j$ (rows of `vectors`, zero above their pivot), for products with $X$
+    and $X^T$ without forming it: $Xv = H_1\cdots H_k[0; v]$ and
+    $X^Tv = [0\ I_m]H_k\cdots H_1v$, $k$ reflections of a vector each."""
+
+    vectors: Float[Array, "k n"]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        k, n = self.vectors.shape
+        return n, n - k
+
+    def times(self, v: Float[Array, "m *r"]) -> Float[Array, "n *r"]:
+        """$Xv$, for a vector or a matrix `v`."""
+        k = self.vectors.shape[0]
+        x = jnp.concatenate([jnp.zeros((k, *v.shape[1:]), v.dtype), v])
+        for w in reversed(list(self.vectors)):
+            x = x - 2 * (jnp.outer(w, w @ x) if x.ndim == 2 else w * (w @ x))
+        return x
+
+    def transpose_times(self, v: Float[Array, " n"]) -> Float[Array, " m"]:
+        """$X^Tv$."""
+        for w in self.vectors:
+            v = v - 2 * w * (w @ v)
+        return v[self.vectors.shape[0] :]
+
+    def matrix(self) -> Float[Array, "n m"]:
+        """$X$ itself."""
+        n, m = self.shape
+        return self.times(jnp.eye(m, dtype=self.vectors.dtype))
+
+
+class FormedFrame(eqx.Module):
+    """A frame given as its matrix, with the products of `HouseholderFrame`: for a frame
+    used many times over (a Jacobian's columns), where forming it once is cheaper
+    than reflecting every column."""
+
+    matrix_: Float[Array, "n m"]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.matrix_.shape
+
+    def times(self, v: Float[Array, "m *r"]) -> Float[Array, "n *r"]:
+        return self.matrix_ @ v
+
+    def transpose_times(self, v: Float[Array, "n *r"]) -> Float[Array, "m *r"]:
+        return self.matrix_.T @ v
+
+    def matrix(self) -> Float[Array, "n m"]:
+        return self.matrix_
+
+
+def householder_frame_operator(a_t: Float[Array, "n k"], signs: Float[Array, " k"]) -> HouseholderFrame:
+    """The frame of `householder_frame` as a `HouseholderFrame`, not formed."""
+    return HouseholderFrame(jnp.stack(_reflectors(a_t, signs)[0]))
+
+
 def householder_frame(
     a_t: Float[Array, "n k"], signs: Float[Array, " k"]
 ) -> tuple[Float[Array, "n m"], Float[Array, " k"]]:
@@ -75,21 +145,5 @@ def householder_frame(
 
     Only the last $m$ columns are formed: $X = H_1 \cdots H_k [0; I_m]$.
     """
-    n, k = a_t.shape
     vectors, pivots, _, _ = _reflectors(a_t, signs)
-    frame = jnp.eye(n, n - k, -k, dtype=a_t.dtype)
-    for w in reversed(vectors):
-        frame = frame - 2 * jnp.outer(w, w @ frame)
-    return frame, jnp.min(pivots)
-
-
-def householder_frame_transpose_times(
-    a_t: Float[Array, "n k"], signs: Float[Array, " k"], v: Float[Array, " n"]
-) -> Float[Array, " m"]:
-    r"""$X^Tv$ for the frame $X$ of `householder_frame` (the same sign choices), without
-    forming $X$: $X^Tv = [0\ I_m]\,H_k\cdots H_1v$, $k$ reflections of a vector."""
-    k = a_t.shape[1]
-    vectors, _, _, _ = _reflectors(a_t, signs)
-    for w in vectors:
-        v = v - 2 * w * (w @ v)
-    return v[k:]
+    return HouseholderFrame(jnp.stack(vectors)).matrix(), jnp.min(pivots)

@@ -15,7 +15,7 @@ from jaxtyping import Array, Float
 
 from ._lagrangian import Lagrangian, LegendreHamiltonian
 from ._linalg import is_quadratic_form, solve_spd
-from ._householder import householder_frame, householder_frame_transpose_times, householder_pivots, householder_signs
+from ._householder import HouseholderFrame, householder_frame_operator, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
 from ._reduced import Derivative, ReducedSystem
 from ._system import AbstractSystem, SkewGradientSystem, require_floating_vector, require_scalar
@@ -174,11 +174,12 @@ class NonholonomicSystem(AbstractSystem):
 
     def frame(self, q, args, signs) -> Float[Array, "n m"]:
         """$X(q; s)$: orthonormal columns spanning $\\mathcal{D}_q = \\ker A(q)$."""
-        return householder_frame(self.constraints(q, args).T, signs)[0]
+        return self.frame_operator(q, args, signs).matrix()
 
-    def frame_transpose_times(self, q, args, signs, v) -> Float[Array, " m"]:
-        """$X(q; s)^Tv$, without forming $X$ (`householder_frame_transpose_times`)."""
-        return householder_frame_transpose_times(self.constraints(q, args).T, signs, v)
+    def frame_operator(self, q, args, signs) -> HouseholderFrame:
+        """$X(q; s)$ as its reflectors, for products with $X$ and $X^T$ without
+        forming it (`nhjax._householder.HouseholderFrame`)."""
+        return householder_frame_operator(self.constraints(q, args).T, signs)
 
     def step_result(self, y0, y1, args) -> RESULTS:
         """`rank_result` at the step's end with the stable signs at its start: $A$ lost
@@ -216,7 +217,7 @@ class NonholonomicSystem(AbstractSystem):
     def to_reduced(self, y, args, signs) -> Float[Array, " n+m"]:
         r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
         q, p = y
-        return jnp.concatenate([q, self.frame(q, args, signs).T @ p])
+        return jnp.concatenate([q, self.frame_operator(q, args, signs).transpose_times(p)])
 
     def from_reduced(self, zeta, args, signs) -> tuple[Array, Array]:
         """$(q, p)$ from $\\zeta = (q, \\rho)$, eq. (ptoptilde)."""

@@ -6,14 +6,16 @@ Notation as in `nhjax._nonholonomic`: $H = \tfrac12 p^TK(q)p + V(q)$, $M = K^{-1
 frame $X(q; s)$ of $\ker A(q)$, $\rho = X^Tp$, $\zeta = (q, \rho)$.
 """
 
-from typing import Any, Literal, TYPE_CHECKING
+from collections.abc import Callable
+from typing import Any, Literal, NamedTuple, TYPE_CHECKING
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._adapted import adapted_structure, adapted_structure_times
+from ._adapted import adapted_structure
+from ._householder import HouseholderFrame
 from ._linalg import product, solve_spd
 
 
@@ -32,19 +34,21 @@ def check_derivative(derivative) -> None:
         )
 
 
-def momentum_in_frame(frame, rho, weighted=None):
-    r"""Eq. (ptoptilde) in a given frame $X$, from `weighted` $= MX$: $p = MX(X^TMX)^{-1}
-    \rho$, and $y = (X^TMX)^{-1}\rho$, the velocity in the frame
-    ($\partial H/\partial p = Xy$). `weighted=None` stands for $M = I$, where the
+def momentum_in_frame(frame: HouseholderFrame, rho, metric=None):
+    r"""Eq. (ptoptilde) in a given frame $X$ and a constant metric $M$:
+    $p = MX(X^TMX)^{-1}\rho$, and $y = (X^TMX)^{-1}\rho$, the velocity in the frame
+    ($\partial H/\partial p = Xy$). `metric=None` stands for $M = I$, where the
     orthonormal frame gives $y = \rho$ and $p = X\rho$ (to rounding; exactly what the
     formula is then taken to mean)."""
-    if weighted is None:
-        return product(frame, rho), rho
-    y = solve_spd(frame.T @ weighted, rho)
+    if metric is None:
+        return frame.times(rho), rho
+    matrix = frame.matrix()
+    weighted = metric @ matrix
+    y = solve_spd(matrix.T @ weighted, rho)
     return weighted @ y, y
 
 
-def momentum_by_projection(system: "NonholonomicSystem", q, frame, rho, args):
+def momentum_by_projection(system: "NonholonomicSystem", q, frame: HouseholderFrame, rho, args):
     r"""Eq. (ptoptilde) where $M$ depends on $q$, without forming $M$: the $p$ and $y$
     of `momentum_in_frame`, from products with $K = M^{-1}$ alone.
 
@@ -67,13 +71,43 @@ def momentum_by_projection(system: "NonholonomicSystem", q, frame, rho, args):
     through a step (GONZALEZ-R's derivatives) are smaller this way than through the
     two unrolled solves."""
     a = system.constraints(q, args)
-    along_frame = frame @ rho
+    along_frame = frame.times(rho)
     velocity = lambda w: system.velocity(q, w, args)  # noqa: E731
     products = jax.vmap(velocity)(jnp.concatenate([along_frame[None], a], axis=0))
     k_along_frame, k_a_t = products[0], products[1:].T
     multiplier = -solve_spd(a @ k_a_t, a @ k_along_frame)
     p = along_frame + a.T @ multiplier
-    return p, frame.T @ (k_along_frame + k_a_t @ multiplier)
+    return p, frame.transpose_times(k_along_frame + k_a_t @ multiplier)
+
+
+class ReducedPoint(NamedTuple):
+    r"""What the reduced field needs at one point $\zeta = (q, \rho)$: the frame
+    $X(q)$ (not formed), the momentum $p(\zeta)$, $\nabla\mathcal{H}(\zeta)$, and
+    products with $J = \partial_q(X^Tp)$ and $J^T$ at fixed $p$
+    (`ReducedSystem.at`). From these, `structure_times` gives $\Pi(\zeta)v$ without
+    forming $\Pi$ or $J$: with $B = JX - (JX)^T$ (skewMat),
+
+    $$\Pi v = \begin{pmatrix} Xv_\rho \\ -X^Tv_q + Bv_\rho\end{pmatrix}
+      = \begin{pmatrix} Xv_\rho \\ J(Xv_\rho) - X^T(v_q + J^Tv_\rho)\end{pmatrix}.$$
+    """
+
+    frame: HouseholderFrame
+    momentum: Float[Array, " n"]
+    gradient: Float[Array, " N"]
+    contracted_times: Callable[[Array], Array]
+    contracted_transpose_times: Callable[[Array], Array]
+
+    def structure_times(self, v: Float[Array, " N"]) -> Float[Array, " N"]:
+        r"""$\Pi(\zeta)v$."""
+        n = self.frame.shape[0]
+        along_q, along_rho = v[:n], v[n:]
+        moved = self.frame.times(along_rho)
+        normal = along_q + self.contracted_transpose_times(along_rho)
+        return jnp.concatenate([moved, self.contracted_times(moved) - self.frame.transpose_times(normal)])
+
+    def field(self) -> Float[Array, " N"]:
+        r"""$\Pi(\zeta)\nabla\mathcal{H}(\zeta)$."""
+        return self.structure_times(self.gradient)
 
 
 def split_reduced(zeta, signs):
@@ -96,14 +130,14 @@ class ReducedSystem(eqx.Module):
 
     The frame's derivative enters both only through $J = \partial_q(X^Tp)$ at fixed
     $p$, $J_{ai} = p^T\partial_iX_a$ (`contracted_frame_derivative`): $B = JX - (JX)^T$
-    and $p^T\partial_iX\,y = (J^Ty)_i$. It is `"autodiff"` (`jax.jacfwd` of
-    $q \mapsto X(q)^Tp$, $k$ Householder reflections of the vector $p$, through the
-    QR) or `"central_difference"`: $(X(q + \epsilon e_i) - X(q - \epsilon e_i))^Tp/2\epsilon$,
+    and $p^T\partial_iX\,y = (J^Ty)_i$, and the field $\Pi\nabla\mathcal{H}$ needs only
+    the products $Jv$ and $J^Tw$ (`ReducedPoint`). With `"autodiff"` they come from
+    one linearisation of $q \mapsto X(q)^Tp$ ($k$ Householder reflections of the
+    vector $p$, through the QR), applied forward and transposed; $J$ itself, for
+    `structure`, by `jax.jacfwd` of the same map. With `"central_difference"`,
+    $J = (X(q + \epsilon e_i) - X(q - \epsilon e_i))^Tp/2\epsilon$,
     the paper's finite-difference remark, with $\epsilon$ = `difference_step`
     (GONZALEZ-R passes $|h|$, as the paper does, so the method stays second order).
-    Differentiating the $m$-vector $X^Tp$ rather than the $n \times m$ matrix $X$
-    carries $n$ tangents of a vector through the reflections instead of $n$ tangents of
-    a matrix.
 
     `metric` says how $M(q)$ enters: `"position"` (default) through products with
     $\partial^2H/\partial p^2$ at each $q$ (`momentum_by_projection`); `"identity"` for
@@ -145,20 +179,23 @@ class ReducedSystem(eqx.Module):
     def _identity_metric(self) -> bool:
         return isinstance(self.metric, str) and self.metric == "identity"
 
-    def momentum_in_frame(self, q, frame, rho, args):
+    def momentum_in_frame(self, q, frame: HouseholderFrame, rho, args):
         """`momentum_in_frame` with this system's metric at `q`; for a metric that
         depends on $q$, `momentum_by_projection`."""
         if self._identity_metric():
             return momentum_in_frame(frame, rho)
         if isinstance(self.metric, str):  # "position"
             return momentum_by_projection(self.system, q, frame, rho, args)
-        return momentum_in_frame(frame, rho, self.metric @ frame)
+        return momentum_in_frame(frame, rho, self.metric)
+
+    def frame(self, q, args) -> HouseholderFrame:
+        """The frame $X(q; s)$ with this system's signs, not formed."""
+        return self.system.frame_operator(q, args, self.signs)
 
     def from_reduced(self, zeta, args) -> tuple[Array, Array]:
         r"""$(q, p)$ from $\zeta = (q, \rho)$, eq. (ptoptilde)."""
         q, rho = split_reduced(zeta, self.signs)
-        frame = self.system.frame(q, args, self.signs)
-        return q, self.momentum_in_frame(q, frame, rho, args)[0]
+        return q, self.momentum_in_frame(q, self.frame(q, args), rho, args)[0]
 
     def hamiltonian(self, zeta, args) -> Float[Array, ""]:
         if self._identity_metric():
@@ -204,9 +241,18 @@ class ReducedSystem(eqx.Module):
         n = z.shape[0] // 2
         return jnp.concatenate(jax.grad(self.system.hamiltonian, argnums=(0, 1))(z[:n], z[n:], args))
 
+    def position_gradient(self, q, p, args) -> Float[Array, " n"]:
+        r"""$\partial_qH(q, p)$ at fixed $p$, the first term of (eq:Htgrad); for $M = I$
+        $\partial_qH(q, 0)$, the whole $\partial_q\mathcal{H}$ (see the class
+        docstring), which needs no momentum."""
+        if self._identity_metric():
+            return jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)
+        return jax.grad(self.system.hamiltonian)(q, p, args)
+
     def contracted_frame_derivative(self, q, p, args) -> Float[Array, "m n"]:
-        r"""$J = \partial_q(X(q)^Tp)$ at fixed $p$: $J_{ai} = \sum_j p_j\,\partial_iX_{ja}$."""
-        transpose_times = lambda x: self.system.frame_transpose_times(x, args, self.signs, p)  # noqa: E731
+        r"""$J = \partial_q(X(q)^Tp)$ at fixed $p$, formed: $J_{ai} = \sum_j p_j\,\partial_iX_{ja}$
+        ($n$ tangents, or $2n$ evaluations for `"central_difference"`)."""
+        transpose_times = lambda x: self.frame(x, args).transpose_times(p)  # noqa: E731
         if self.derivative == "autodiff":
             return jax.jacfwd(transpose_times)(q)
         step = jnp.asarray(self.difference_step, q.dtype)
@@ -214,41 +260,48 @@ class ReducedSystem(eqx.Module):
         differences = jax.vmap(lambda e: (transpose_times(q + e) - transpose_times(q - e)) / (2 * step))(offsets)
         return differences.T
 
-    def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
-        r"""$\Pi(\zeta)$ and $\nabla\mathcal{H}(\zeta)$ from one frame derivative."""
-        frame, bracket, gradient = self.frame_bracket_and_gradient(zeta, args)
-        return adapted_structure(frame, bracket), gradient
+    def at(self, zeta, args, contracted: Float[Array, "m n"] | None = None) -> ReducedPoint:
+        r"""The `ReducedPoint` at $\zeta$: $\nabla\mathcal{H}$ by (eq:Htgrad),
+        $\partial_{q^i}\mathcal{H} = \partial_{q^i}H(q, p) - (J^Ty)_i$, and products
+        with $J = \partial_q(X^Tp)$ (`contracted_frame_derivative`) and its transpose.
 
-    def frame_bracket_and_gradient(self, zeta, args):
-        r"""$X$, the block $B$ of $\Pi$ and $\nabla\mathcal{H}$ at $\zeta$
-        (`bracket_and_gradient_in_frame`)."""
+        With `"autodiff"` the products are matrix-free: one linearisation of
+        $q \mapsto X(q)^Tp$ ($k$ reflections of one vector, through the QR), applied
+        forward ($Jv$) and transposed ($J^Tw$), so that a field evaluation costs a few
+        passes through the QR instead of $n$ tangents of it, which made GONZALEZ-R's
+        cost grow like $n^4$ (`benchmarks/scaling.py`). With `"central_difference"`
+        $J$ is formed by differences, the paper's remark. `contracted`: a given $J$,
+        that of another point (`nhjax.GonzalezR.chord_jacobian`), in place of this
+        point's."""
         q, rho = split_reduced(zeta, self.signs)
-        frame = self.system.frame(q, args, self.signs)
-        return frame, *self.bracket_and_gradient_in_frame(q, rho, frame, args)
-
-    def bracket_and_gradient_in_frame(self, q, rho, frame, args):
-        r"""The skew block $B$ of $\Pi$ (skewMat) and $\nabla\mathcal{H}$ (eq:Htgrad)
-        at $(q, \rho)$, given the frame $X$ at $q$; with
-        `nhjax._adapted.adapted_structure_times` they give $\Pi v$ without forming
-        $\Pi$. The frame's derivative enters both through
-        $J = \partial_q(X^Tp)$ (`contracted_frame_derivative`), formed once."""
+        frame = self.frame(q, args)
         p, y = self.momentum_in_frame(q, frame, rho, args)
-        return self.bracket_and_gradient_with(q, p, y, frame, self.contracted_frame_derivative(q, p, args), args)
-
-    def bracket_and_gradient_with(self, q, p, y, frame, contracted, args):
-        r"""`bracket_and_gradient_in_frame` from the momentum $p$, the velocity in the
-        frame $y$ and a given $J$ = `contracted` (`contracted_frame_derivative`): with
-        the $J$ of another point, an approximation (`nhjax.GonzalezR.chord_jacobian`)."""
-        along_frame = contracted @ frame
-        if self._identity_metric() and self.derivative == "autodiff":
-            grad_q = jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)
+        if contracted is None and self.derivative == "autodiff":
+            _, times = jax.linearize(lambda x: self.frame(x, args).transpose_times(p), q)
+            transpose = jax.linear_transpose(times, q)
+            transpose_times = lambda w: transpose(w)[0]  # noqa: E731
         else:
-            grad_q = jax.grad(self.system.hamiltonian)(q, p, args) - product(y, contracted)
-        return along_frame - along_frame.T, jnp.concatenate([grad_q, y])
+            if contracted is None:
+                contracted = self.contracted_frame_derivative(q, p, args)
+            times = lambda v: product(contracted, v)  # noqa: E731
+            transpose_times = lambda w: product(w, contracted)  # noqa: E731
+        grad_q = self.position_gradient(q, p, args)
+        if not (self._identity_metric() and self.derivative == "autodiff"):
+            grad_q = grad_q - transpose_times(y)
+        return ReducedPoint(frame, p, jnp.concatenate([grad_q, y]), times, transpose_times)
+
+    def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
+        r"""$\Pi(\zeta)$, formed from $X$ and $B = JX - (JX)^T$ (PiMat), (skewMat), and
+        $\nabla\mathcal{H}(\zeta)$."""
+        q, rho = split_reduced(zeta, self.signs)
+        point = self.at(zeta, args)
+        frame = point.frame.matrix()
+        along_frame = self.contracted_frame_derivative(q, point.momentum, args) @ frame
+        return adapted_structure(frame, along_frame - along_frame.T), point.gradient
 
     def structure(self, zeta, args) -> Float[Array, "N N"]:
         return self.structure_and_gradient(zeta, args)[0]
 
     def vector_field(self, zeta, args) -> Float[Array, " N"]:
         r"""$\dot\zeta = \Pi(\zeta)\nabla\mathcal{H}(\zeta)$."""
-        return adapted_structure_times(*self.frame_bracket_and_gradient(zeta, args))
+        return self.at(zeta, args).field()

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nhjax._householder import householder_frame, householder_frame_transpose_times, householder_signs
+from nhjax._householder import householder_frame, householder_frame_operator, householder_signs
 
 
 def _matrix(seed, n, k):
@@ -62,15 +62,18 @@ def test_frame_derivative_by_autodiff_matches_central_differences():
     np.testing.assert_allclose(forward, reverse, atol=1e-14)
 
 
-def test_frame_transpose_times_and_its_derivative_match_the_formed_frame():
-    """X^T v from the reflectors applied to v, and its derivative in q at fixed v,
-    against the formed frame and the contraction of its whole derivative with v."""
+def test_frame_products_and_their_derivative_match_the_formed_frame():
+    """X^T v and X w from the reflectors applied to v and w, and the derivative of
+    X^T v in q at fixed v, against the formed frame and the contraction of its whole
+    derivative with v."""
     q = jnp.array([0.3, -0.7, 1.1, 0.4])
     v = jnp.array([0.9, -0.2, 0.5, 1.3])
     signs = householder_signs(_constraint_matrix(q).T)
     frame = lambda x: householder_frame(_constraint_matrix(x).T, signs)[0]  # noqa: E731
-    transpose_times = lambda x: householder_frame_transpose_times(_constraint_matrix(x).T, signs, v)  # noqa: E731
+    transpose_times = lambda x: householder_frame_operator(_constraint_matrix(x).T, signs).transpose_times(v)  # noqa: E731
     np.testing.assert_allclose(jax.jit(transpose_times)(q), frame(q).T @ v, atol=1e-15)
+    w = jnp.array([0.7, -1.1])
+    np.testing.assert_allclose(householder_frame_operator(_constraint_matrix(q).T, signs).times(w), frame(q) @ w, atol=1e-15)
     contracted = jnp.einsum("j,jai->ai", v, jax.jit(jax.jacfwd(frame))(q))
     np.testing.assert_allclose(jax.jit(jax.jacfwd(transpose_times))(q), contracted, atol=1e-14)
 

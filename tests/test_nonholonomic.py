@@ -70,7 +70,9 @@ def test_project_momentum():
 @pytest.mark.parametrize("derivative", ["autodiff", "central_difference"])
 def test_reduced_gradient_and_structure(derivative):
     """(eq:Htgrad) with dX/dq equals autodiff of H(q, p(q, rho)); the structure is skew;
-    Pi grad H reproduces the canonical motion (qdot = v, rhodot = d/dt X^T p)."""
+    Pi grad H reproduces the canonical motion (qdot = v, rhodot = d/dt X^T p); the
+    matrix-free products Pi v (from products with the frame and with J and J^T) equal
+    the formed Pi times v."""
     y = QUARTIC.from_adapted(QUARTIC.initial_state(0.4).at[7:].add(0.1))
     y = (y[0], QUARTIC.canonical.project_momentum(*y))
     system = QUARTIC.canonical
@@ -86,6 +88,9 @@ def test_reduced_gradient_and_structure(derivative):
     np.testing.assert_allclose(gradient, jax.grad(reduced.hamiltonian)(zeta, None), atol=tolerance)
     np.testing.assert_array_equal(structure, -structure.T)
     np.testing.assert_allclose(structure, reduced.structure(zeta, None), atol=0)
+    point = formulas.at(zeta, None)
+    for v in jax.random.normal(jax.random.key(3), (3, zeta.shape[0]), dtype=zeta.dtype):
+        np.testing.assert_allclose(point.structure_times(v), structure @ v, atol=1e-14)
     zeta_rate = structure @ gradient
     q_rate, p_rate = system.vf(0.0, y, None)
     _, canonical_zeta_rate = jax.jvp(lambda y: system.to_reduced(y, None, signs), (y,), ((q_rate, p_rate),))

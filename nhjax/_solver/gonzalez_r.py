@@ -1,19 +1,20 @@
 r"""GONZALEZ-R (§3.3): the Gonzalez discrete-gradient method on the reduced system,
 evaluated from $H$ and $A$ alone.
 
-**What a step costs.** One chord matrix (`GonzalezR.chord_jacobian`: the field at the
-predictor's midpoint and at $n$ shifted positions, each shift with its own frame through
-the QR and the midpoint's frame derivative, the $\rho$ columns by forward-mode
-autodiff, and the inverse, `nhjax._solver.chord.chord_inverse`), then about four
-residuals (the field at the midpoint, and $\mathcal{H}$ at $\zeta'$ for the Gonzalez
-correction). The chord matrix costs several residuals; as $n$ grows, the frame
-derivative's $n$ tangents in every residual come to dominate
-(`benchmarks/scaling.py`). The frame's derivative is only ever needed contracted with $p$,
-as $\partial_q(X^Tp)$ (`nhjax._reduced.ReducedSystem.contracted_frame_derivative`):
-$n$ tangents of $k$ reflections of one vector, not of the $n \times m$ frame. Where
-$\partial H/\partial p$ does not depend on $q$ (checked on its program), the metric is
-a constant (`_metric`); for $M = I$, $\mathcal{H}$ and its gradient need no frame at all
-(`nhjax._reduced.ReducedSystem`), so the Gonzalez correction costs no QR. Under `vmap`
+**What a step costs.** One chord matrix (`GonzalezR.chord_jacobian`: the derivative of
+the field with the frame formed once at the predictor's midpoint and held to first
+order, from derivatives of $H$ and $A$ but none of the QR, and its inverse,
+`nhjax._solver.chord.chord_inverse`), then five to eight residuals. A residual is the
+field at the midpoint, $\Pi\bar\nabla\mathcal{H}$, and $\mathcal{H}$ at $\zeta'$ for the
+Gonzalez correction. The field needs the frame only through products with $X$ and
+$X^T$ (`nhjax._householder.HouseholderFrame`: $k$ reflections of a vector each) and the
+frame's derivative only through products with $J = \partial_q(X^Tp)$ and $J^T$, from
+one linearisation of $q \mapsto X(q)^Tp$ applied forward and transposed
+(`nhjax._reduced.ReducedSystem.at`): a few passes through the QR, $O(nk^2)$ work, where
+forming $J$ takes $n$ tangents of it. For $M = I$, $\mathcal{H}$ and its gradient need
+no frame at all (`nhjax._reduced.ReducedSystem`), so the Gonzalez correction costs no
+QR. Where $\partial H/\partial p$ does not depend on $q$ (checked on its program),
+the metric is a constant (`_metric`). Under `vmap`
 the predictor's Euler branch runs only at the steps where some trajectory needs it
 (`nhjax._rare_branch.rarely`), and the chord iteration's loop runs until the
 slowest trajectory has converged: on a batch of 200 gearbox trajectories at
@@ -40,9 +41,10 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
-from .._adapted import adapted_structure_times
 from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import Branch, gonzalez_correction
+from .._householder import FormedFrame
+from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, ReducedSystem, split_reduced
 from .._rare_branch import rarely
@@ -222,7 +224,8 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         truncation whatever the midpoint gradient, so with either `derivative`."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         zeta1 = zeta + scale * u
-        frame, bracket, gradient = reduced.frame_bracket_and_gradient(0.5 * (zeta + zeta1), args)
+        midpoint = reduced.at(0.5 * (zeta + zeta1), args)
+        gradient = midpoint.gradient
         if correction:
             energy1, segment = reduced.energy_segment(zeta, data.momentum, zeta1, args)
             gradient = gonzalez_correction(
@@ -237,7 +240,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
                 f_x1=energy1,
                 segment=segment,
             )
-        return u - h * adapted_structure_times(frame, bracket, gradient) / scale
+        return u - h * midpoint.structure_times(gradient) / scale
 
     def root_find_residual(self, u, data):
         return self.residual(u, data, branch="rarely")
@@ -247,55 +250,58 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
 
     def chord_jacobian(self, u, data):
         r"""An approximation of the Jacobian of `simplified_residual`,
-        $I - \tfrac h2\,S^{-1}\,\partial(\Pi\nabla\mathcal{H})/\partial\zeta\,S$ at
-        $\bar\zeta = \zeta + Su/2$, by blocks of columns:
+        $I - \tfrac h2\,S^{-1}FS$ at $\bar\zeta = \zeta + Su/2$, where $F$ is the
+        derivative of $\Pi\nabla\mathcal{H}$ with the frame held to first order:
 
-        - the $m$ columns for $\rho$ exactly, by `jax.jacfwd` with the frame at
-          $\bar q$ held fixed (it does not depend on $\rho$);
-        - the $n$ columns for $q$ by forward differences of $\Pi\nabla\mathcal{H}$
-          with increments $\sqrt{\varepsilon}(1 + |\bar q_i|)$, evaluated together
-          (`vmap`), each shifted point with its own frame but with the frame
-          derivative $J = \partial_q(X^Tp)$ of the midpoint
-          (`nhjax._reduced.ReducedSystem.bracket_and_gradient_with`).
+        - the momentum, the velocity $y$ and $\partial_qH$ vary exactly, by
+          `jax.jacfwd` with the frame formed once at $\bar q$
+          (`nhjax._householder.FormedFrame`): with $M = I$ this is
+          $\begin{pmatrix} 0 & X \\ -X^T\partial_q^2V & 0\end{pmatrix}$;
+        - the frame moves out of $\mathcal{D}$ as $\ker A$ does:
+          $X(\bar q + \delta) \approx X - A^+\,\partial A[\delta]\,X$, $A^+ =
+          A^T(AA^T)^{-1}$, which keeps $A X = 0$ to first order and needs derivatives of
+          $A$ only ($A(q)v$ and $A(q)^T\lambda$ along $n$ tangents), not of the QR;
+        - left out: the frame's rotation within $\mathcal{D}$ ($X^T\partial X$, which
+          the Householder construction fixes), the block $B$ and the term
+          $J^Ty$ of (eq:Htgrad), all derivatives of the QR.
 
-        Forward-mode differentiation of the $q$ columns would carry second
-        derivatives of the Householder frame through the QR; so would the differences
-        with $J$ recomputed at each shifted point, $n$ forward passes of $n$ tangents
-        each, $O(n^4)$ work that made the matrix most of a step from $n = 16$ on
-        (`benchmarks/scaling.py`). Leaving out $J$'s variation changes the matrix by
-        $O(h)$ at most times the frame's second derivatives ($O(h^2)$ on the $n = 3$
-        quartic), and the chord iteration's contraction factor by as much, against
-        $O(h^3)$ otherwise: on the gearbox the iteration counts are those of the
-        exact matrix, on the $n = 3$ quartic 9% more,
-        on the synthetic systems of `benchmarks/scaling.py` 10-25% more, and the root
-        is the same. `benchmarks/gonzalez_r_variants.py` times whole steps with
-        `jax.jacfwd` of the simplified residual instead. Derivatives of the root do
-        not use this matrix (see `nhjax._solver.chord`)."""
+        Those would take $n$ tangents (or $n$ shifted factorisations) through the
+        QR at every step, $O(n^2k^2)$ work: GONZALEZ-R's cost grew like $n^4$ with them
+        (`benchmarks/scaling.py`). What is left out is $O(h)$ in the chord
+        iteration's contraction factor, against $O(h^3)$ for the exact matrix: on the
+        gearbox the iterations are as many as with the exact matrix (4.28 per step:
+        its frame turns only out of $\mathcal{D}$), on the $n = 3$ quartic 6.7 against
+        5.0, on the synthetic systems of `benchmarks/scaling.py` 7.0 to 8.3 against 4.0
+        to 5.0, each step still cheaper. The root does not depend on the matrix, and
+        derivatives of the root do not use it (see `nhjax._solver.chord`)."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
+        system = reduced.system
         midpoint = zeta + 0.5 * scale * u
-        q, rho = split_reduced(midpoint, reduced.signs)
-        frame = reduced.system.frame(q, args, reduced.signs)
+        q, _ = split_reduced(midpoint, reduced.signs)
+        frame = FormedFrame(reduced.frame(q, args).matrix())
 
-        def field(q, rho, frame):
-            return adapted_structure_times(frame, *reduced.bracket_and_gradient_in_frame(q, rho, frame, args))
+        def field_in_fixed_frame(z):
+            x, rho = split_reduced(z, reduced.signs)
+            p, y = reduced.momentum_in_frame(x, frame, rho, args)
+            force = reduced.position_gradient(x, p, args)
+            return jnp.concatenate([frame.times(y), -frame.transpose_times(force)]), (y, force)
 
-        p, y = reduced.momentum_in_frame(q, frame, rho, args)
-        contracted = reduced.contracted_frame_derivative(q, p, args)
-
-        def field_with_midpoint_derivative(x, frame, p, y):
-            return adapted_structure_times(frame, *reduced.bracket_and_gradient_with(x, p, y, frame, contracted, args))
-
-        def shifted_field(x):
-            shifted_frame = reduced.system.frame(x, args, reduced.signs)
-            return field_with_midpoint_derivative(x, shifted_frame, *reduced.momentum_in_frame(x, shifted_frame, rho, args))
-
-        # At the midpoint itself, the frame and momentum already formed above.
-        at_midpoint = field_with_midpoint_derivative(q, frame, p, y)
-        increments = jnp.sqrt(jnp.finfo(q.dtype).eps) * (1 + jnp.abs(q))
-        shifted = jax.vmap(shifted_field)(q + jnp.diag(increments))
-        along_q = ((shifted - at_midpoint) / increments[:, None]).T
-        along_rho = jax.jacfwd(lambda r: field(q, r, frame))(rho)
-        field_jacobian = jnp.concatenate([along_q, along_rho], axis=1)
+        field_jacobian, (y, force) = jax.jacfwd(field_in_fixed_frame, has_aux=True)(midpoint)
+        a = system.constraints(q, args)
+        gram = a @ a.T
+        velocity = frame.times(y)
+        multiplier = solve_spd(gram, a @ force)
+        along_velocity, along_multiplier = jax.jacfwd(
+            lambda x: (system.constraints(x, args) @ velocity, system.constraints(x, args).T @ multiplier)
+        )(q)
+        frame_motion = jnp.concatenate(
+            [-a.T @ solve_spd(gram, along_velocity), frame.transpose_times(along_multiplier)]
+        )
+        # Where A has lost rank, A^+ is undefined and the step fails on the rank check
+        # at its end (`NonholonomicSystem.step_result`): the matrix goes without the
+        # term rather than turn the iteration's arithmetic to NaN first.
+        frame_motion = jnp.where(jnp.isfinite(frame_motion), frame_motion, 0.0)
+        field_jacobian = field_jacobian.at[:, : q.shape[0]].add(frame_motion)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
 
     def resolution(self, data):
