@@ -245,6 +245,14 @@ class AbstractMethod(diffrax.AbstractSolver):
     def complete(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], PyTree]:
         raise NotImplementedError
 
+    def chord_remainder(self, data: Any) -> float | None:
+        """A bound on the error the chord iteration may leave in the returned iterate,
+        in units of its tolerance (`nhjax._solver.chord.PresetChord.solve`), for a
+        method whose chord matrix contracts slowly; `None` (the default): none beyond
+        the tolerance."""
+        del data
+        return None
+
     def resolution(self, data: Any) -> tuple[Float[Array, " u"], Float[Array, " u"]] | None:
         r"""How finely the points at which the residual evaluates the system are
         resolved: for each unknown $u_j = (x'_j - x_j)/s_j$, the rounding of
@@ -345,7 +353,13 @@ class AbstractMethod(diffrax.AbstractSolver):
             resolution = self.resolution(fixed_data)
             floor = None if resolution is None else rounding_floor(jacobian, *resolution)
             solution = root_finder.solve(
-                self.root_find_residual, guess, fixed_data, inverse, self.root_find_max_steps, floor
+                self.root_find_residual,
+                guess,
+                fixed_data,
+                inverse,
+                self.root_find_max_steps,
+                floor,
+                self.chord_remainder(fixed_data),
             )
             evaluations_finite = jnp.all(jnp.isfinite(guess)) & jnp.all(jnp.isfinite(jacobian))
             singular = ~jnp.all(jnp.isfinite(inverse))

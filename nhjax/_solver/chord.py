@@ -28,6 +28,9 @@ from .._rare_branch import rarely
 
 
 STALL_FACTOR = 8.0
+# The error a slowly contracting iteration may leave, in units of its tolerance, where
+# the method asks for a bound (`PresetChord.solve`): 1e-4 of 64 eps, below the rounding.
+REMAINDER = 1e-4
 
 
 def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
@@ -148,8 +151,15 @@ class PresetChord(optx.AbstractRootFinder):
         return jnp.where(jnp.isnan(diff), y, y - diff), new_state, aux
 
     def terminate(self, fn, y, args, options, state, tags):
-        del fn, y, args, options, tags
+        del fn, y, args, tags
         converged = (state.diff_size < 1) & (state.residual_size < 1)
+        remainder = (options or {}).get("remainder")
+        if remainder is not None:
+            # The error left after the last correction, estimated as theta |diff| with
+            # the contraction theta = |diff| / |previous diff| (as Hairer and Wanner,
+            # Solving ODEs II, §IV.8, estimate it for simplified Newton iterations).
+            left = state.diff_size * state.diff_size <= remainder * state.previous_diff_size
+            converged = converged & (state.steps >= 2) & left
         stalled = (
             (state.steps >= 2)
             & (state.diff_size < STALL_FACTOR)
@@ -179,6 +189,7 @@ class PresetChord(optx.AbstractRootFinder):
         inverse: Float[Array, "n n"],
         max_steps: int,
         floor: Float[Array, " n"] | None = None,
+        remainder: float | None = None,
     ) -> ChordSolution:
         """The iteration for a root of `fn(u, args)` (no auxiliary output) from `y0`
         with the inverse Jacobian approximation `inverse`: the iterates, codes and
@@ -187,6 +198,16 @@ class PresetChord(optx.AbstractRootFinder):
         `optimistix.RESULTS.nonlinear_max_steps_reached` and `nonfinite` for a
         non-finite iterate, computed by a plain `lax.while_loop`; `floor` as
         `options["floor"]` (see the class docstring).
+
+        `remainder` (`None`: no bound): for an inverse that contracts the iteration
+        only slowly, also continue until the error the returned iterate keeps,
+        estimated from the contraction of the last two corrections, is below
+        `remainder` tolerances (`REMAINDER`: below the rounding), unless the iteration
+        has stalled at the rounding floor. An error below the tolerance but of one sign
+        from step to step (the chord matrix's error is smooth along a trajectory)
+        would otherwise add up: with a matrix contracting by 0.002 per iteration, the
+        energy of the 3D rolling disk drifted by 2.6e-13 relative in 20 000 steps,
+        against 1.6e-14 with the bound.
 
         The loop carries only what changes: the inverse and the floors, which do not,
         stay outside it. Under `vmap` a while loop's body ends with a select between the
@@ -201,7 +222,7 @@ class PresetChord(optx.AbstractRootFinder):
         constants = (state.inverse, state.floor, state.correction_floor)
 
         def terminate_and_result(y, state):
-            terminate, result = self.terminate(fn_with_aux, y, args, None, state, frozenset())
+            terminate, result = self.terminate(fn_with_aux, y, args, dict(remainder=remainder), state, frozenset())
             return terminate, optx.RESULTS.where(jnp.all(jnp.isfinite(y)), result, optx.RESULTS.nonfinite)
 
         def cond(carry):

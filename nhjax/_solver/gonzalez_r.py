@@ -4,7 +4,7 @@ evaluated from $H$ and $A$ alone.
 **What a step costs.** One chord matrix (`GonzalezR.chord_jacobian`: the derivative of
 the field with the frame formed once at the predictor's midpoint and held to first
 order, from derivatives of $H$ and $A$ but none of the QR, and its inverse,
-`nhjax._solver.chord.chord_inverse`), then five to eight residuals. A residual is the
+`nhjax._solver.chord.chord_inverse`), then five to nine residuals. A residual is the
 field at the midpoint, $\Pi\bar\nabla\mathcal{H}$, and $\mathcal{H}$ at $\zeta'$ for the
 Gonzalez correction. The field needs the frame only through products with $X$ and
 $X^T$ (`nhjax._householder.HouseholderFrame`: $k$ reflections of a vector each) and the
@@ -48,6 +48,7 @@ from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, ReducedSystem, split_reduced
 from .._rare_branch import rarely
+from .chord import REMAINDER
 from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient, resolution_of
 
 
@@ -248,6 +249,13 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     def simplified_residual(self, u, data):
         return self.residual(u, data, correction=False)
 
+    def chord_remainder(self, data):
+        """The chord matrix holds the frame fixed, and the iteration contracts only by
+        $O(h)$: it goes on until the error it leaves is below the rounding
+        (`nhjax._solver.chord.PresetChord.solve`, `REMAINDER`)."""
+        del data
+        return REMAINDER
+
     def chord_jacobian(self, u, data):
         r"""An approximation of the Jacobian of `simplified_residual`,
         $I - \tfrac h2\,S^{-1}FS$ at $\bar\zeta = \zeta + Su/2$, where $F$ is the
@@ -268,12 +276,15 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         Those would take $n$ tangents (or $n$ shifted factorisations) through the
         QR at every step, $O(n^2k^2)$ work: GONZALEZ-R's cost grew like $n^4$ with them
         (`benchmarks/scaling.py`). What is left out is $O(h)$ in the chord
-        iteration's contraction factor, against $O(h^3)$ for the exact matrix: on the
-        gearbox the iterations are as many as with the exact matrix (4.28 per step:
-        its frame turns only out of $\mathcal{D}$), on the $n = 3$ quartic 6.7 against
-        5.0, on the synthetic systems of `benchmarks/scaling.py` 7.0 to 8.3 against 4.0
-        to 5.0, each step still cheaper. The root does not depend on the matrix, and
-        derivatives of the root do not use it (see `nhjax._solver.chord`)."""
+        iteration's contraction factor, against $O(h^3)$ for the exact matrix, and the
+        iteration goes on until the error it leaves is below the rounding
+        (`chord_remainder`). Iterations per step, with the matrix that carries the
+        frame's derivative in brackets: gearbox 4.4 (4.3; its frame turns only out of
+        $\mathcal{D}$), $n = 3$ quartic 7.9 (5.0), 3D rolling disk 5.7 (3.3),
+        synthetic systems of `benchmarks/scaling.py` at $n = 8, 16$ 8.4, 9.1 (4.3),
+        each step as cheap or cheaper from the quartic on (the disk 10% dearer).
+        The root does not depend on the matrix, and derivatives of the root do not use
+        it (see `nhjax._solver.chord`)."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         system = reduced.system
         midpoint = zeta + 0.5 * scale * u

@@ -75,6 +75,26 @@ def test_slow_convergence_is_accepted_only_near_the_root(route):
     assert error > ATOL  # accepted by the stall test, not the plain one
 
 
+def test_a_remainder_bound_iterates_until_the_estimated_error_is_below_it():
+    """Contraction c = 0.05 (corrections shrink 20-fold, so the stall test never
+    fires): without a bound the iteration stops at the first correction below the
+    tolerance, leaving an error of up to c tolerances; with `remainder` it goes on
+    until c |correction| is below `remainder` tolerances, and the error left is below
+    that. An exact guess (zero corrections) still converges."""
+    contraction, remainder = 0.05, 1e-4
+    inverse = (1 - contraction) * jnp.eye(3)
+    solve = PresetChord(atol=ATOL).solve
+    plain = solve(lambda u, args: u - ROOT, jnp.zeros(3), None, inverse, 50)
+    bounded = solve(lambda u, args: u - ROOT, jnp.zeros(3), None, inverse, 50, remainder=remainder)
+    assert plain.result == bounded.result == optx.RESULTS.successful
+    plain_error, bounded_error = (float(jnp.max(jnp.abs(s.value - ROOT))) for s in (plain, bounded))
+    assert plain_error > remainder * ATOL
+    assert bounded_error <= remainder * ATOL / (1 - contraction)
+    assert int(bounded.steps) > int(plain.steps)
+    exact = solve(lambda u, args: u - ROOT, ROOT, None, inverse, 50, remainder=remainder)
+    assert exact.result == optx.RESULTS.successful and int(exact.steps) == 2
+
+
 @pytest.mark.parametrize("growth", [4.0, jnp.inf])
 def test_growing_or_nonfinite_corrections_are_divergence(growth, route):
     solution = _solve(lambda u, args: growth * (u - ROOT) + 1.0, jnp.eye(3), route=route)
