@@ -20,6 +20,11 @@ iterations a step with a dense Jacobian (`jax.jacfwd`, `jnp.linalg.solve`). The 
 growth exponent of each method is the slope of log(µs/step) against log(n) over the
 sizes from 16 on.
 
+Beside the family, Euler's disk (`nhjax.examples.rolling_disk_3d`, n = 5, k = 2, a
+metric that depends on q: a system as a mechanician derives it) in both its forms, the
+Hamiltonian from the mass matrix and the Lagrangian (`from_lagrangian`), every method,
+h = 0.01 from a generic start.
+
 Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R]
 Results go to benchmarks/results/scaling.json and a log-log plot beside it,
 scaling.png.
@@ -132,6 +137,8 @@ def main():
             flush=True,
         )
 
+    disk = _disk(methods, options.repeats)
+
     large = [n for n in sizes if n >= 16]
     growth = {}
     for name in ["yardstick", *methods]:
@@ -142,8 +149,37 @@ def main():
         print(f"  {name:<18} grows like n^{exponent:.2f} from n = {large[0]} to {large[-1]}")
 
     write(dict(system="synthetic: H = |p|^2/2 + |q|^2/2 + sum(1 - cos(q_i - q_{i-1})), k = n/4 rows", h=H,
-               sizes=table, growth_exponent_from_16=growth), options.out)
+               sizes=table, growth_exponent_from_16=growth, rolling_disk_3d=disk), options.out)
     _plot(table, ["yardstick", *methods], pathlib.Path(options.out).with_suffix(".png"))
+
+
+DISK_STEPS = 2000
+
+
+def _disk(methods, repeats):
+    """Every method on Euler's disk in both forms: µs/step, compile s, iterations."""
+    disk = nh.examples.rolling_disk_3d()
+    y0 = disk.state(jnp.array([0.3, -0.2, 0.4, 0.25, 0.1]), turn_rate=0.6, lean_rate=-0.3, spin_rate=2.5)
+    forms = dict(mass_matrix_hamiltonian=disk.canonical, lagrangian=disk.canonical_from_lagrangian)
+    results = {}
+    for form, system in forms.items():
+        row = {}
+        for name, method in methods.items():
+            solver = method.solver
+            run = jax.jit(lambda y: nh.integrate(system, solver, y, 0.01, DISK_STEPS, args=disk.args,
+                                                 save_every=DISK_STEPS, throw=False))
+            solution, figures = _case(run, y0, repeats, DISK_STEPS)
+            total = solution.stats.get("root_find_steps")
+            figures["iterations_per_step"] = None if total is None else float(total) / DISK_STEPS
+            figures["successful"] = bool(solution.result == nh.RESULTS.successful)
+            row[name] = figures
+        results[form] = row
+        print(
+            f"3D rolling disk, {form}: "
+            + "; ".join(f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s)" for name in methods),
+            flush=True,
+        )
+    return results
 
 
 def _plot(table, names, path):

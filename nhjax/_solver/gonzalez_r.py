@@ -17,9 +17,8 @@ QR. Where $\partial H/\partial p$ does not depend on $q$ (checked on its program
 the metric is a constant (`_metric`). Under `vmap`
 the predictor's Euler branch runs only at the steps where some trajectory needs it
 (`nhjax._rare_branch.rarely`), and the chord iteration's loop runs until the
-slowest trajectory has converged: on a batch of 200 gearbox trajectories at
-$h = 0.1$, 4.4 iterations per trajectory and step on average, 5.9 for the slowest of
-the batch at a step. Derivatives of a run add, per step, one
+slowest trajectory has converged (`benchmarks/gonzalez_r.py` times a batch of 200).
+Derivatives of a run add, per step, one
 linearisation of the residual (its Jacobian in the unknowns and its derivative along
 the data, `nhjax._solver.base._implicit_root`), whose second derivatives of the frame
 through the QR in $\Pi$ make most of the derivative program, with the Gonzalez
