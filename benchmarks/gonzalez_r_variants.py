@@ -29,7 +29,7 @@ jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
 from _timing import run_and_time_interleaved, timed, write  # noqa: E402
-from nhjax._reduced import ReducedSystem, split_reduced  # noqa: E402
+from nhjax._reduced import ReducedSystem  # noqa: E402
 from nhjax._solver.base import AbstractMethod  # noqa: E402
 
 
@@ -49,9 +49,7 @@ class JacfwdChordMatrix(nh.GonzalezR):
 class _FormedFrameDerivativeReduced(ReducedSystem):
     def at(self, zeta, args, contracted=None):
         if contracted is None:
-            q, rho = split_reduced(zeta, self.signs)
-            p, _ = self.momentum_in_frame(q, self.frame(q, args), rho, args)
-            contracted = self.contracted_frame_derivative(q, p, args)
+            contracted = self.formed_frame_derivative(zeta, args)
         return super().at(zeta, args, contracted)
 
 

@@ -107,6 +107,17 @@ def _case(run, argument, repeats, steps):
     return output, dict(us_per_step=seconds / steps * 1e6, compile_s=compile_s, peak_rss_mib=_peak_mib())
 
 
+def _method_case(system, solver, y0, h, steps, repeats, args=None):
+    """One method's run of `steps` steps: µs/step, compile s, peak memory, root-finder
+    iterations per step, and whether it succeeded."""
+    run = jax.jit(lambda y: nh.integrate(system, solver, y, h, steps, args=args, save_every=steps, throw=False))
+    solution, figures = _case(run, y0, repeats, steps)
+    total = solution.stats.get("root_find_steps")
+    figures["iterations_per_step"] = None if total is None else float(total) / steps
+    figures["successful"] = bool(solution.result == nh.RESULTS.successful)
+    return figures
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="4,8,16,32,64")
@@ -123,13 +134,7 @@ def main():
         row = dict(k=n // 4, steps=steps)
         _, row["yardstick"] = _case(jax.jit(lambda y: _yardstick(y, steps)), jnp.concatenate(y0), options.repeats, steps)
         for name, method in methods.items():
-            solver = method.solver
-            run = jax.jit(lambda y: nh.integrate(SYSTEM, solver, y, H, steps, save_every=steps, throw=False))
-            solution, figures = _case(run, y0, options.repeats, steps)
-            total = solution.stats.get("root_find_steps")
-            figures["iterations_per_step"] = None if total is None else float(total) / steps
-            figures["successful"] = bool(solution.result == nh.RESULTS.successful)
-            row[name] = figures
+            row[name] = _method_case(SYSTEM, method.solver, y0, H, steps, options.repeats)
         table[n] = row
         print(
             f"n = {n:3d}, k = {n // 4:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
@@ -163,16 +168,10 @@ def _disk(methods, repeats):
     forms = dict(mass_matrix_hamiltonian=disk.canonical, lagrangian=disk.canonical_from_lagrangian)
     results = {}
     for form, system in forms.items():
-        row = {}
-        for name, method in methods.items():
-            solver = method.solver
-            run = jax.jit(lambda y: nh.integrate(system, solver, y, 0.01, DISK_STEPS, args=disk.args,
-                                                 save_every=DISK_STEPS, throw=False))
-            solution, figures = _case(run, y0, repeats, DISK_STEPS)
-            total = solution.stats.get("root_find_steps")
-            figures["iterations_per_step"] = None if total is None else float(total) / DISK_STEPS
-            figures["successful"] = bool(solution.result == nh.RESULTS.successful)
-            row[name] = figures
+        row = {
+            name: _method_case(system, method.solver, y0, 0.01, DISK_STEPS, repeats, disk.args)
+            for name, method in methods.items()
+        }
         results[form] = row
         print(
             f"3D rolling disk, {form}: "

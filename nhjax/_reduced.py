@@ -260,6 +260,12 @@ class ReducedSystem(eqx.Module):
         differences = jax.vmap(lambda e: (transpose_times(q + e) - transpose_times(q - e)) / (2 * step))(offsets)
         return differences.T
 
+    def formed_frame_derivative(self, zeta, args) -> Float[Array, "m n"]:
+        r"""$J = \partial_q(X^Tp)$ at $\zeta$, $p = p(\zeta)$, formed
+        (`contracted_frame_derivative`)."""
+        q, rho = split_reduced(zeta, self.signs)
+        return self.contracted_frame_derivative(q, self.momentum_in_frame(q, self.frame(q, args), rho, args)[0], args)
+
     def at(self, zeta, args, contracted: Float[Array, "m n"] | None = None) -> ReducedPoint:
         r"""The `ReducedPoint` at $\zeta$: $\nabla\mathcal{H}$ by (eq:Htgrad),
         $\partial_{q^i}\mathcal{H} = \partial_{q^i}H(q, p) - (J^Ty)_i$, and products
@@ -293,11 +299,12 @@ class ReducedSystem(eqx.Module):
     def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
         r"""$\Pi(\zeta)$, formed from $X$ and $B = JX - (JX)^T$ (PiMat), (skewMat), and
         $\nabla\mathcal{H}(\zeta)$."""
-        q, rho = split_reduced(zeta, self.signs)
-        point = self.at(zeta, args)
-        frame = point.frame.matrix()
-        along_frame = self.contracted_frame_derivative(q, point.momentum, args) @ frame
-        return adapted_structure(frame, along_frame - along_frame.T), point.gradient
+        q, _ = split_reduced(zeta, self.signs)
+        contracted = self.formed_frame_derivative(zeta, args)
+        frame = self.frame(q, args).matrix()
+        along_frame = contracted @ frame
+        # The gradient from the same J, not from a second, linearised one.
+        return adapted_structure(frame, along_frame - along_frame.T), self.at(zeta, args, contracted).gradient
 
     def structure(self, zeta, args) -> Float[Array, "N N"]:
         return self.structure_and_gradient(zeta, args)[0]

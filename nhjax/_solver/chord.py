@@ -10,8 +10,9 @@ iteration, at a fraction of the cost of Newton's method. The converged root is t
 (to the tolerance), and derivatives of the root with respect to the inputs come from
 the implicit function theorem with the exact Jacobian of $F$
 (`nhjax._solver.base._implicit_root`), so they are exact too. (GONZALEZ-R's matrix
-leaves out the variation of the frame's derivative too, an $O(h)$ change that costs a
-few iterations and saves $O(n^4)$ work: `nhjax.GonzalezR.chord_jacobian`.)
+holds the frame fixed to first order, an $O(h)$ change that costs a few iterations and
+saves $O(n^2k^2)$ work per step: `nhjax.GonzalezR.chord_jacobian`; it then bounds the
+error the iteration leaves, `PresetChord.solve`'s `remainder`.)
 """
 
 from typing import Any
