@@ -8,7 +8,7 @@ the loop adds diffrax's bookkeeping and, at each save, the energy and constraint
 residual. In the compiled program of 2000 GONZALEZ-R steps on the gearbox saved once
 (`benchmarks/gradients.py`'s loss; 6029 HLO instructions) the step is 1952
 instructions and diffrax's loop around it 218; outside the loop, diffrax's end-time
-clipping ($t_1$ less 100 ulps, one `prevbefore` after another) is 1504 and the checks
+clipping (t1 less 100 ulps, one `prevbefore` after another) is 1504 and the checks
 of the start and the saves about 1250, which cost compile time only. Run time goes to
 the step: the same steps in a bare `lax.scan` take about 0.9 times as long
 (`python benchmarks/gonzalez_r.py`).
@@ -52,7 +52,8 @@ class Solution(eqx.Module):
 
     **Attributes:**
 
-    - `ts`: the save times, shape `(n_saved,)` with `n_saved = n_steps // save_every + 1`.
+    - `ts`: the save times, shape `(n_saved,)` with `n_saved = n_steps // save_every + 1`
+        (`max_steps // save_every + 1` with a bound `max_steps`).
     - `ys`: the saved states, each leaf with a leading `(n_saved,)` axis.
     - `energy`: the energy at each save, shape `(n_saved,)`.
     - `constraint`: the constraint residual at each save, `(n_saved, k)`, for systems
@@ -103,18 +104,40 @@ def _is_int(value) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
-def check_step_counts(n_steps, save_every) -> None:
+def check_step_counts(n_steps, save_every, max_steps=None) -> None:
     """`ValueError` unless `n_steps` and `save_every` are positive ints and `save_every`
-    divides `n_steps` (so that the final state is saved)."""
-    if not _is_int(n_steps) or n_steps < 1:
-        raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
+    divides `n_steps` (so that the final state is saved).
+
+    With a bound `max_steps` (a positive int that `save_every` divides), `n_steps` may
+    be any integer scalar, traced ones included; a concrete one must lie in
+    `[1, max_steps]` (a traced one is checked at run time, code `invalid_n_steps`)."""
     if not _is_int(save_every) or save_every < 1:
         raise ValueError(f"save_every must be a positive int, got {save_every!r}.")
-    if n_steps % save_every != 0:
-        raise ValueError(
-            f"save_every={save_every} must divide n_steps={n_steps}, so that the final "
-            "state is saved."
-        )
+    if max_steps is None:
+        if not _is_int(n_steps) or n_steps < 1:
+            raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
+        if n_steps % save_every != 0:
+            raise ValueError(
+                f"save_every={save_every} must divide n_steps={n_steps}, so that the final "
+                "state is saved."
+            )
+        return
+    if not _is_int(max_steps) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+    if max_steps % save_every != 0:
+        raise ValueError(f"save_every={save_every} must divide max_steps={max_steps}.")
+    if _is_int(n_steps):
+        concrete = n_steps
+    elif (
+        hasattr(n_steps, "dtype")
+        and jnp.ndim(n_steps) == 0
+        and jnp.issubdtype(n_steps.dtype, jnp.integer)
+    ):
+        concrete = None if isinstance(n_steps, jax.core.Tracer) else int(n_steps)
+    else:
+        raise ValueError(f"n_steps must be an integer scalar, got {n_steps!r}.")
+    if concrete is not None and not 1 <= concrete <= max_steps:
+        raise ValueError(f"n_steps must lie in [1, max_steps] = [1, {max_steps}], got {concrete}.")
 
 
 def check_step_size(dt, t0=0.0) -> None:
@@ -266,6 +289,7 @@ def integrate(
     t0: float | Array = 0.0,
     check_constraint: bool | Array = True,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    max_steps: int | None = None,
 ) -> Solution:
     """Integrate `system` with `method` over `n_steps` steps of size `dt` from `t0`.
 
@@ -304,10 +328,12 @@ def integrate(
     - `method`: an nhjax method such as `nhjax.DiscreteGradient()`, or any diffrax solver.
     - `y0`: the initial state, as the system defines it.
     - `dt`: the step size, > 0. Cast to the dtype of `y0`.
-    - `n_steps`: the number of steps, a positive int.
+    - `n_steps`: the number of steps, a positive int; with `max_steps`, any integer
+        scalar in `[1, max_steps]`, traced ones included.
     - `args`: parameters passed to every function of the system. Their real
         floating-point leaves are cast to the dtype of `y0`, as `dt` is.
-    - `save_every`: save every this many steps; must divide `n_steps`.
+    - `save_every`: save every this many steps; must divide `n_steps` (with
+        `max_steps`: `max_steps`).
     - `progress`: show a progress bar (diffrax's tqdm meter; not in the replayed
         runs of derivatives).
     - `throw`: raise on failure. With `throw=False` failures are reported per
@@ -320,6 +346,14 @@ def integrate(
         the replay from stored roots or `default_adjoint`'s choice. A diffrax adjoint
         differentiates diffrax's loop: `diffrax.RecursiveCheckpointAdjoint()` keeps the
         memory at O(log n_steps) states whatever the run's length or batch.
+    - `max_steps`: a static bound on `n_steps`, which may then be traced, so that one
+        compilation serves every number of steps up to it: a sweep of step sizes to a
+        fixed end time (an order study, `jax.vmap` over `dt` and `n_steps` included)
+        compiles once. The saves are those of a run of `max_steps` steps: save $i$
+        holds the state after min(i s, n) steps (s = `save_every`, n =
+        `n_steps`) at its time, so that `ys[-1]` is always the final state and saves
+        past the end repeat it. The run takes $n$ steps; its derivatives by replay
+        (above) walk all `max_steps`, holding the state after the end.
 
     **Errors.** Wrong shapes, a non-integer `n_steps`, and a concrete `dt` that is not
     positive and finite, `t0` or `args` leaf that is not finite raise a `ValueError` at
@@ -328,7 +362,7 @@ def integrate(
     `RuntimeError` with its message and the step and time of the failure, and a traced
     one (under `jit`, `vmap`, `grad`) a runtime error with its message.
     """
-    check_step_counts(n_steps, save_every)
+    check_step_counts(n_steps, save_every, max_steps)
     check_step_size(dt, t0)
     check_args(args)
     system.check_shapes(y0, args)
@@ -343,7 +377,8 @@ def integrate(
         in_state_dtype(trace_floats(args), dtype),
         jnp.asarray(check_constraint, dtype=bool),
         _checked_adjoint(adjoint),
-        n_steps=int(n_steps),
+        jnp.asarray(n_steps, dtype=jnp.int32),
+        max_steps=int(n_steps if max_steps is None else max_steps),
         save_every=int(save_every),
         progress=bool(progress),
     )
@@ -401,7 +436,7 @@ class FixedStepTimes(diffrax.AbstractStepSizeController):
     `python benchmarks/gonzalez_r.py` measures the loop's cost per step against a bare
     `lax.scan` of the same steps). The run ends when
     diffrax's loop reaches $t_1 = t_0 + n\,\Delta t$; `integrate` checks beforehand that
-    no step lands within diffrax's end-clipping margin (100 ulps) of $t_1$ early."""
+    no step lands within diffrax's end-clipping margin (100 ulps) of t1 early."""
 
     t0: Float[Array, ""]
     dt: Float[Array, ""]
@@ -429,20 +464,24 @@ def _method_outcome(solver_state) -> tuple[RESULTS, dict[str, Array]]:
     return RESULTS.successful, {}
 
 
-def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n_steps, save_every, progress):
+def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps, *, max_steps, save_every, progress):
     """The run, differentiated by replay from its stored roots (`nhjax._replay`) where
     `replays_derivatives` says so, otherwise through diffrax's loop with `adjoint` (or
     `default_adjoint`'s choice)."""
-    static = dict(n_steps=n_steps, save_every=save_every)
+    static = dict(max_steps=max_steps, save_every=save_every)
     if adjoint is None and isinstance(method, AbstractMethod):
         return _integrate_replaying_derivatives(
-            system, method, y0, dt, t0, args, check_constraint, progress=progress, **static
+            system, method, y0, dt, t0, args, check_constraint, n_steps, progress=progress, **static
         )
-    return _integrate_by_diffrax(system, method, y0, dt, t0, args, check_constraint, adjoint, progress=progress, **static)
+    return _integrate_by_diffrax(
+        system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps, progress=progress, **static
+    )
 
 
 @eqx.filter_custom_jvp
-def _integrate_replaying_derivatives(system, method, y0, dt, t0, args, check_constraint, *, n_steps, save_every, progress):
+def _integrate_replaying_derivatives(
+    system, method, y0, dt, t0, args, check_constraint, n_steps, *, max_steps, save_every, progress
+):
     """The run by diffrax's loop, with the derivatives of `_integrate_differentiably`.
 
     The derivative rule sits outside the compiled run, so that a derivative program
@@ -450,52 +489,59 @@ def _integrate_replaying_derivatives(system, method, y0, dt, t0, args, check_con
     differentiates it, and the loop it would trace here is not differentiated."""
     adjoint = diffrax.RecursiveCheckpointAdjoint()  # never differentiated: the rule replaces it
     return _integrate_by_diffrax(
-        system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps=n_steps, save_every=save_every, progress=progress
+        system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps,
+        max_steps=max_steps, save_every=save_every, progress=progress,
     )
 
 
 @_integrate_replaying_derivatives.def_jvp
-def _integrate_replaying_derivatives_jvp(primals, tangents, *, n_steps, save_every, progress):
+def _integrate_replaying_derivatives_jvp(primals, tangents, *, max_steps, save_every, progress):
     del progress
-    differentiable = functools.partial(_integrate_differentiably, n_steps=n_steps, save_every=save_every)
+    differentiable = functools.partial(_integrate_differentiably, max_steps=max_steps, save_every=save_every)
     return eqx.filter_jvp(differentiable, primals, tangents)
 
 
 @eqx.filter_jit
-def _integrate_differentiably(system, method, y0, dt, t0, args, check_constraint, *, n_steps, save_every):
+def _integrate_differentiably(system, method, y0, dt, t0, args, check_constraint, n_steps, *, max_steps, save_every):
     """The run of an nhjax method as its derivatives see it: replayed from its stored
     roots (`nhjax._replay.replayed_run`) where they fit the budget
     (`replays_derivatives`), otherwise diffrax's loop with `default_adjoint`."""
-    if replays_derivatives(system, method, y0, args, dt, n_steps):
-        run = functools.partial(replayed_run, n_steps=n_steps, save_every=save_every)
+    static = dict(max_steps=max_steps, save_every=save_every)
+    if replays_derivatives(system, method, y0, args, dt, max_steps):
+        run = functools.partial(replayed_run, **static)
     else:
-        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
-        run = functools.partial(_diffrax_run, adjoint=adjoint, n_steps=n_steps, save_every=save_every, progress=False)
-    return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps=n_steps)
+        adjoint = default_adjoint(system, method, y0, args, dt, max_steps)
+        run = functools.partial(_diffrax_run, adjoint=adjoint, progress=False, **static)
+    return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps, **static)
 
 
 @eqx.filter_jit
-def _integrate_by_diffrax(system, method, y0, dt, t0, args, check_constraint, adjoint, *, n_steps, save_every, progress):
+def _integrate_by_diffrax(
+    system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps, *, max_steps, save_every, progress
+):
     if adjoint is None:  # chosen here, once per compilation
-        adjoint = default_adjoint(system, method, y0, args, dt, n_steps)
-    run = functools.partial(_diffrax_run, adjoint=adjoint, n_steps=n_steps, save_every=save_every, progress=progress)
-    return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps=n_steps)
+        adjoint = default_adjoint(system, method, y0, args, dt, max_steps)
+    static = dict(max_steps=max_steps, save_every=save_every)
+    run = functools.partial(_diffrax_run, adjoint=adjoint, progress=progress, **static)
+    return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps, **static)
 
 
-def _diffrax_run(system, method, y_start, dt, t0, args, *, adjoint, n_steps, save_every, progress):
+def _diffrax_run(system, method, y_start, dt, t0, args, n_steps, *, adjoint, max_steps, save_every, progress):
     """The fixed-step run by `diffrax.diffeqsolve`: `(ts, (ys, observed), final solver
-    state, the run's code, number of steps taken)`."""
+    state, the run's code, number of steps taken)`, the saves of `max_steps` steps
+    (`_held_after_the_end` fills those past `n_steps`)."""
     solution = diffrax.diffeqsolve(
         system,
         method,
         t0=t0,
-        t1=t0 + dt * n_steps,
+        t1=t0 + dt * n_steps.astype(dt.dtype),
         dt0=None,
         y0=y_start,
         args=args,
-        saveat=diffrax.SaveAt(t0=True, steps=save_every, fn=_save_observables(system), solver_state=True),
+        # t1=True: the final state of a run whose n_steps save_every does not divide.
+        saveat=diffrax.SaveAt(t0=True, steps=save_every, t1=True, fn=_save_observables(system), solver_state=True),
         stepsize_controller=FixedStepTimes(t0, dt),
-        max_steps=n_steps,
+        max_steps=max_steps,
         adjoint=adjoint,
         throw=False,
         progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
@@ -506,25 +552,49 @@ def _diffrax_run(system, method, y_start, dt, t0, args, *, adjoint, n_steps, sav
     return solution.ts, solution.ys, solution.solver_state, result, steps_taken
 
 
-def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, *, n_steps) -> Solution:
+def _held_after_the_end(ts, saved, n_steps, steps_taken, result, *, save_every):
+    """The saves of a run of `n_steps` out of a bound, both loops' alike: save $i$ is the
+    state after min(i s, n) steps, so that a complete run repeats its final save
+    (the save of step $n$, or diffrax's save at t1) to the end; a run that stopped
+    early (a failure) has inf past its last step, as diffrax fills them."""
+    slots = jnp.arange(ts.shape[0])
+    final = (n_steps + save_every - 1) // save_every
+    complete = (steps_taken == n_steps) & (result == RESULTS.successful)
+    held = complete & (slots > final)
+    unreached = ~complete & (save_every * slots > steps_taken)
+
+    def fill(x):
+        shape = (-1,) + (1,) * (x.ndim - 1)
+        x = jnp.where(held.reshape(shape), x[final], x)
+        return jnp.where(unreached.reshape(shape), jnp.inf, x)
+
+    return fill(ts), jax.tree.map(fill, saved)
+
+
+def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps, *, max_steps, save_every) -> Solution:
     """The checks of the start, then `run`, then the `Solution` of its saves."""
     state_result = system.initial_state_result(y0, args)
     waived = ~check_constraint & (state_result == RESULTS.constraint_violated_initially)
     valid_dt = jnp.isfinite(dt) & (dt > 0)
+    valid_n_steps = (n_steps >= 1) & (n_steps <= max_steps)
     # A trajectory that cannot start still runs (under vmap its neighbours do), from a
-    # NaN state at harmless times, so that it stops after one failed step.
+    # NaN state at harmless times for one step, so that it stops after one failed step.
     safe_dt = jnp.where(valid_dt, dt, jnp.ones_like(dt))
-    step_times = t0 + safe_dt * jnp.arange(n_steps + 1, dtype=dt.dtype)
+    n_steps = jnp.where(valid_n_steps, n_steps, jnp.ones_like(n_steps))
+    step_times = t0 + safe_dt * jnp.arange(max_steps + 1, dtype=dt.dtype)
+    end, before_end = step_times[n_steps], step_times[n_steps - 1]
+    in_run = jnp.arange(max_steps + 1) <= n_steps
     # Increasing, and no step before the last within diffrax's end clipping (100 ulps
     # of t1), which would end the loop early.
-    end_margin = 128 * jnp.finfo(dt.dtype).eps * jnp.abs(step_times[-1])
+    end_margin = 128 * jnp.finfo(dt.dtype).eps * jnp.abs(end)
     valid_times = (
-        jnp.all(jnp.isfinite(step_times))
-        & jnp.all(jnp.diff(step_times) > 0)
-        & (step_times[-1] - step_times[-2] > end_margin)
+        jnp.all(jnp.isfinite(step_times) | ~in_run)
+        & jnp.all((jnp.diff(step_times) > 0) | ~in_run[1:])
+        & (end - before_end > end_margin)
     )
     t0 = jnp.where(valid_times, t0, jnp.zeros_like(t0))
     initial_result = first_failure(
+        RESULTS.where(valid_n_steps, RESULTS.successful, RESULTS.invalid_n_steps),
         RESULTS.where(valid_dt, RESULTS.successful, RESULTS.invalid_dt),
         RESULTS.where(valid_times, RESULTS.successful, RESULTS.invalid_t0),
         args_result(args),
@@ -533,7 +603,8 @@ def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, *, 
     startable = initial_result == RESULTS.successful
     y_start = nan_where_failed(~startable, y0, y0)
 
-    ts, saved, solver_state, run_result, steps_taken = run(system, method, y_start, safe_dt, t0, args)
+    ts, saved, solver_state, run_result, steps_taken = run(system, method, y_start, safe_dt, t0, args, n_steps)
+    ts, saved = _held_after_the_end(ts, saved, n_steps, steps_taken, run_result, save_every=save_every)
     _, statistics = _method_outcome(solver_state)
     stats = dict(num_steps=steps_taken)
     stats.update(statistics or dict(root_find_steps=None, max_root_find_steps=None))

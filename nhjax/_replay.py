@@ -24,7 +24,7 @@ The replay repeats the recorded step's arithmetic on the same values, so its sta
 are the run's states; it steps to the same times $t_0 + k\,\Delta t$ as
 `nhjax._integrate.FixedStepTimes`, reports the same codes and statistics as the diffrax
 loop (a failed step is the last one taken; the saves after it are NaN, their times
-$\infty$), and a trajectory that failed has NaN derivatives (`nhjax.integrate` gates
+inf), and a trajectory that failed has NaN derivatives (`nhjax.integrate` gates
 them). `python benchmarks/gradients.py` measures the derivative against the forward
 run and against diffrax's checkpointed adjoints.
 """
@@ -51,10 +51,11 @@ def tree_bytes(tree) -> int:
 
 def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, args, dt) -> int:
     """Bytes per step that a derivative through `replayed_run` keeps: the step's root
-    and the replay's state and carry."""
+    and the replay's state, which holds the state and carry and the last step's start
+    and root."""
 
     carry, root = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y0, dt, args))
-    return tree_bytes((y0, carry, root))
+    return tree_bytes((y0, carry, root)) + tree_bytes((y0, carry, root, dt))
 
 
 def _first_carry_and_unknowns(system, method, y0, dt, args):
@@ -75,11 +76,11 @@ def _step_size(t0, dt, k):
     return _step_time(t0, dt, k + 1) - _step_time(t0, dt, k)
 
 
-def _record(system, method, y_start, dt, t0, args, n_steps):
+def _record(system, method, y_start, dt, t0, args, n_steps, max_steps):
     """The run's steps by the root finder, without derivatives: each step's root, and
     whether it was taken and succeeded, and the final method state. A failed step is
     the last one taken, as in diffrax's loop: the later ones are skipped, their roots
-    NaN."""
+    NaN, as are those of the steps after the end (`n_steps` of `max_steps`)."""
     y_start, dt, t0, args = lax.stop_gradient((y_start, dt, t0, args))
     state = method.init(system, t0, _step_time(t0, dt, jnp.array(1)), y_start, args)
     root_shape = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y_start, dt, args)[1])
@@ -87,7 +88,7 @@ def _record(system, method, y_start, dt, t0, args, n_steps):
     def step(carry, k):
         y, state = carry
         h = _step_size(t0, dt, k)
-        running = state.failure == RESULTS.successful
+        running = (state.failure == RESULTS.successful) & (k < n_steps)
 
         def take(_):
             y1, state1, failure, root = method.solve_step(system, h, y, args, state)
@@ -103,25 +104,34 @@ def _record(system, method, y_start, dt, t0, args, n_steps):
         return (y1, state1), (root, succeeded, running)
 
     (_, final_state), (roots, succeeded, taken) = lax.scan(
-        step, (y_start, state), jnp.arange(n_steps)
+        step, (y_start, state), jnp.arange(max_steps)
     )
     return roots, succeeded, taken, final_state
 
 
-def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, *, save_every):
+def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_steps, *, save_every):
     """The saved states and observables of the run replayed from its roots (with the
-    derivatives of `AbstractMethod.replay_step`)."""
+    derivatives of `AbstractMethod.replay_step`).
+
+    A step after the end holds the state. It replays the last step of the run again,
+    from that step's own start and root, and discards the result: a replay from a
+    skipped step's NaN root would give the discarded branch NaN derivatives, which
+    reverse mode multiplies by the zero cotangent of the branch not taken (under
+    `vmap`, where the steps of a batch end at different `n_steps`)."""
     carry = method.initial_carry(system, y_start, args)
     n_saves = roots.shape[0] // save_every
 
     @jax.checkpoint
     def step(state, inputs):
-        y, carry = state
+        y, carry, last = state
         k, root, success = inputs
-        h = _step_size(t0, dt, k)
-        y1, carry1 = method.replay_step(system, h, y, args, carry, root)
+        in_run = k < n_steps
+        replayed = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y, carry, root, k), last)
+        y_k, carry_k, root_k, index = replayed
+        y1, carry1 = method.replay_step(system, _step_size(t0, dt, index), y_k, args, carry_k, root_k)
         y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
-        return (y1, carry1), None
+        y1, carry1 = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y1, carry1), (y, carry))
+        return (y1, carry1, replayed), None
 
     def between_saves(state, inputs):
         state, _ = lax.scan(step, state, inputs)
@@ -132,29 +142,30 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, *, 
         lambda x: x.reshape(n_saves, save_every, *x.shape[1:]),
         (jnp.arange(roots.shape[0]), roots, succeeded),
     )
-    _, (ys, observed) = lax.scan(between_saves, (y_start, carry), blocks)
+    first_step = (y_start, carry, roots[0], jnp.array(0))
+    _, (ys, observed) = lax.scan(between_saves, (y_start, carry, first_step), blocks)
     first = jax.tree.map(lambda x: x[None], (y_start, system.observables(y_start, args)))
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
 
 
-def _save_times(dt, t0, taken, *, save_every):
-    """The save times $t_0, t_{s}, t_{2s}, \\dots$, and $\\infty$ for saves after the
-    last step taken (diffrax's fill)."""
-    n_saves = taken.shape[0] // save_every
-    steps = save_every * jnp.arange(n_saves + 1)
-    reached = jnp.concatenate([jnp.array([True]), taken[save_every - 1 :: save_every]])
-    return jnp.where(reached, _step_time(t0, dt, steps), jnp.inf)
+def _save_times(dt, t0, n_steps, n_saves: int, *, save_every):
+    """The save times t0 + min(i s, n) dt; `nhjax._integrate` sets inf for those
+    after a failure (diffrax's fill)."""
+    steps = jnp.minimum(save_every * jnp.arange(n_saves + 1), n_steps)
+    return _step_time(t0, dt, steps)
 
 
-def replayed_run(system, method, y_start, dt, t0, args, *, n_steps: int, save_every: int):
-    """The run of `n_steps` fixed steps as `nhjax.integrate`'s diffrax loop returns it,
-    `(ts, (ys, observed), final method state, the run's code, number of steps taken)`,
-    computed for derivatives: the steps by the root finder without derivatives
-    (`_record`), then the saves of the steps replayed from their roots, which carry the
-    derivatives (see the module docstring)."""
-    roots, succeeded, taken, final_state = _record(system, method, y_start, dt, t0, args, n_steps)
-    ts = _save_times(dt, t0, taken, save_every=save_every)
-    saved = _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, save_every=save_every)
+def replayed_run(system, method, y_start, dt, t0, args, n_steps, *, max_steps: int, save_every: int):
+    """The run of `n_steps` fixed steps, saved as a run of `max_steps`, as
+    `nhjax.integrate`'s diffrax loop returns it, `(ts, (ys, observed), final method
+    state, the run's code, number of steps taken)`, computed for derivatives: the steps
+    by the root finder without derivatives (`_record`), then the saves of the steps
+    replayed from their roots, which carry the derivatives (see the module docstring)."""
+    roots, succeeded, taken, final_state = _record(system, method, y_start, dt, t0, args, n_steps, max_steps)
+    ts = _save_times(dt, t0, n_steps, max_steps // save_every, save_every=save_every)
+    saved = _replayed_saves(
+        system, method, y_start, dt, t0, args, roots, succeeded, n_steps, save_every=save_every
+    )
     # The run's code from the method's state, as the diffrax loop reports it (a step
     # that fails is the loop's only way to stop early).
     return ts, saved, final_state, final_state.failure, jnp.sum(taken, dtype=int)

@@ -77,6 +77,7 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "solution blew up, or left the region where the system is defined. The saved "
         "states from that step on are not finite."
     )
+    invalid_n_steps = "The number of steps n_steps must lie in [1, max_steps]."
 
 
 _TRANSLATED = (

@@ -199,9 +199,10 @@ def test_batch_members_equal_their_single_runs(batched):
         alone = single(pick(states), pick(args), steps[index])
         assert alone.result == pick(solution.result), name
         # Equal to rounding: the batched program is vectorised code, compiled apart
-        # from the single one, so it may round differently (a few ulps).
+        # from the single one, so it may round differently (a few ulps a step, which
+        # the large steps of `step_too_large` amplify to 2e-14 in 11 steps).
         for together, apart in zip(_leaves(pick(solution.ys)), _leaves(alone.ys)):
-            np.testing.assert_allclose(together, apart, rtol=1e-14, atol=1e-13, err_msg=name)
+            np.testing.assert_allclose(together, apart, rtol=1e-13, atol=1e-13, err_msg=name)
         if name == "small_motion":
             # Not noise: the motion (from the start, the clock's included) is linear in
             # its size to O(size), so at 1e-12 it is that at 1e-8 scaled, to the

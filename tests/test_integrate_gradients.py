@@ -323,6 +323,30 @@ def test_differentiated_runs_report_what_the_loop_reports():
         assert bool(jnp.all(jnp.abs(got - want)[finite] <= 1e-12 * (1 + jnp.abs(want[finite]))))
 
 
+def test_runs_of_traced_lengths_in_one_batch_have_the_derivatives_of_their_static_runs():
+    """A batch of runs of 30 and 40 steps out of a bound of 40 (saved every 4: step 30
+    is saved at its own time, then held): the final state's reverse- and forward-mode
+    derivatives with respect to the momentum and dt are those of the runs with their
+    step counts static. Reverse mode meets the steps after a run's end, whose replay
+    it discards, with a zero cotangent: they must add nothing, not NaN."""
+    (q0, p0), args = _gearbox_start()
+    method = nh.GonzalezR()
+
+    def final(p0, dt, n, max_steps):
+        solution = nh.integrate(GEARBOX, method, (q0, p0), dt, n, args=args, save_every=max_steps // 10,
+                                max_steps=max_steps)
+        return jnp.concatenate(jax.tree.leaves(jax.tree.map(lambda y: y[-1], solution.ys)))
+
+    dts, ns = jnp.array([0.1, 0.07]), jnp.array([30, 40])
+    for differentiate in (jax.jacrev, jax.jacfwd):
+        bounded = jax.jit(jax.vmap(differentiate(lambda p, dt, n: final(p, dt, n, 40), (0, 1)), (None, 0, 0)))
+        got = bounded(p0, dts, ns)
+        for i, n in enumerate((30, 40)):
+            want = differentiate(lambda p, dt: final(p, dt, n, n), (0, 1))(p0, dts[i])
+            for g, w in zip(got, want):
+                assert _relative(g[i], w) <= 1e-12
+
+
 def test_forward_over_forward_second_derivatives_match_finite_differences():
     """The Hessian by `jax.jacfwd(jax.jacfwd(...))` through 5 GONZALEZ-R steps (the
     predictor's carry and the Gonzalez correction included), against central
