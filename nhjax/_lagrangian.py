@@ -28,7 +28,9 @@ Lagrangian = Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array
 class LegendreHamiltonian(eqx.Module):
     r"""$H(q, p) = \tfrac12p^TM(q)^{-1}p + V(q)$ with $M = \partial^2L/\partial\dot q^2$ at
     $\dot q = 0$ and $V = -L(q, 0)$: the Legendre transform of `lagrangian` (module
-    docstring), a function `(q, p, args) -> scalar` like any Hamiltonian."""
+    docstring), a function `(q, p, args) -> scalar` like any Hamiltonian, whose
+    derivatives are first derivatives of $L$ at the velocity $M^{-1}p$
+    (`_legendre_transform_jvp`), not autodiff through $M$ and the solve."""
 
     lagrangian: Lagrangian
 
@@ -36,8 +38,12 @@ class LegendreHamiltonian(eqx.Module):
         return jax.hessian(self.lagrangian, argnums=1)(q, jnp.zeros_like(q), args)
 
     def __call__(self, q: Float[Array, " n"], p: Float[Array, " n"], args: Any) -> Float[Array, ""]:
-        potential = -self.lagrangian(q, jnp.zeros_like(q), args)
-        return 0.5 * p @ solve_spd(self.mass_matrix(q, args), p) + potential
+        return _legendre_transform(self, q, p, args)
+
+    def velocity_and_value(self, q, p, args) -> tuple[Float[Array, " n"], Float[Array, ""]]:
+        r"""$\dot q = M(q)^{-1}p$ and $H(q, p)$."""
+        velocity = solve_spd(self.mass_matrix(q, args), p)
+        return velocity, 0.5 * p @ velocity - self.lagrangian(q, jnp.zeros_like(q), args)
 
     def is_mechanical(
         self, q: Float[Array, " n"], velocity: Float[Array, " n"], args: Any, tolerance: Callable
@@ -48,3 +54,37 @@ class LegendreHamiltonian(eqx.Module):
         return is_quadratic_form(
             lambda u: self.lagrangian(q, u, args), self.mass_matrix(q, args), velocity, tolerance
         )
+
+
+@eqx.filter_custom_jvp
+def _legendre_transform(hamiltonian: LegendreHamiltonian, q, p, args):
+    return hamiltonian.velocity_and_value(q, p, args)[1]
+
+
+@_legendre_transform.def_jvp
+def _legendre_transform_jvp(primals, tangents):
+    r"""$dH = \dot q^T dp - \partial_qL(q, \dot q)\,dq - \partial_{\text{args}}L(q, \dot q)
+    \,d\text{args}$ at $\dot q = M^{-1}p$: $H(q, p) = \max_{\dot q}\,(p^T\dot q - L(q,
+    \dot q))$ for $L$ convex in $\dot q$, and the maximiser's own variation drops out
+    (the envelope theorem; for mechanical $L$, $-\partial_qL(q, \dot q) =
+    -\tfrac12\dot q^T\partial_qM\,\dot q + \partial_qV = \partial_qH$ exactly). So the
+    derivatives of $H$ are first derivatives of $L$ at the velocity, not derivatives of
+    $M = \partial^2L/\partial\dot q^2$ and of the solve by it: derivatives of $H$ of
+    any order trace $L$ to one order less."""
+    hamiltonian, q, p, args = primals
+    _, q_dot, p_dot, args_dot = tangents
+    velocity, value = hamiltonian.velocity_and_value(q, p, args)
+    q_dot = jnp.zeros_like(q) if q_dot is None else q_dot
+    if args_dot is None:  # no parameter differentiated
+        args_dot = jax.tree.map(lambda _: None, args)
+    args_dot = jax.tree.map(
+        lambda leaf, t: t if t is not None else (jnp.zeros_like(leaf) if eqx.is_inexact_array(leaf) else None),
+        args, args_dot, is_leaf=lambda t: t is None,
+    )
+    _, lagrangian_dot = eqx.filter_jvp(
+        lambda q_, args_: hamiltonian.lagrangian(q_, velocity, args_), (q, args), (q_dot, args_dot)
+    )
+    value_dot = -lagrangian_dot
+    if p_dot is not None:
+        value_dot = value_dot + velocity @ p_dot
+    return value, value_dot

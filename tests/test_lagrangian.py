@@ -33,6 +33,33 @@ def test_the_legendre_transform_gives_the_examples_hamiltonian(name):
     np.testing.assert_allclose(metric_derived, metric_given, rtol=1e-13, atol=1e-13)
 
 
+@pytest.mark.parametrize("name", list(STARTS) + ["Euler's disk"])
+def test_the_legendre_transforms_derivatives_are_those_of_the_examples_hamiltonian(name):
+    """The Legendre transform's derivatives come from first derivatives of L at the
+    velocity (the envelope theorem); those of the hand-written H by autodiff through it:
+    gradients in q, p and the parameters, second derivatives in (q, p) and the mixed
+    one of the parameters, at random states."""
+    example = nh.examples.rolling_disk_3d() if name == "Euler's disk" else EXAMPLES[name]
+    given, derived = example.canonical.hamiltonian, example.canonical_from_lagrangian.hamiltonian
+    n = example.constraints(jnp.zeros(5), example.args).shape[1] if name == "Euler's disk" else STARTS[name][1][0].shape[0]
+    keys = jax.random.split(jax.random.key(4), 2)
+    qs, ps = (0.5 * jax.random.normal(key, (5, n)) for key in keys)
+    args = jax.tree.map(jnp.asarray, example.args)
+
+    parameters = (2,) if jax.tree.leaves(args) else ()  # the gearbox and the quartic have none
+
+    def derivatives(hamiltonian):
+        gradient = jax.grad(hamiltonian, (0, 1, *parameters))
+        hessian = jax.jacfwd(jax.grad(hamiltonian, (0, 1)), (0, 1))
+        mixed = jax.jacrev(jax.grad(hamiltonian, 0), parameters) if parameters else (lambda *_: ())
+        return jax.jit(jax.vmap(lambda q, p: (gradient(q, p, args), hessian(q, p, args), mixed(q, p, args))))(qs, ps)
+
+    expected = jax.tree.leaves(derivatives(given))
+    for got, want in zip(jax.tree.leaves(derivatives(derived)), expected, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * (1 + float(jnp.max(jnp.abs(want)))))
+    assert max(float(jnp.max(jnp.abs(leaf))) for leaf in expected) > 0.1  # not trivially zero
+
+
 def test_the_momentum_of_a_velocity_is_the_lagrangians_derivative():
     """p = M(q) qdot against dL/dqdot by autodiff of the Lagrangian itself, on the
     sleigh (q-dependent M); for a velocity on the constraint, p is on it too."""
