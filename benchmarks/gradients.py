@@ -1,5 +1,10 @@
-"""Derivatives through long GONZALEZ-R runs on the gearbox: their compile time, their
-time against the forward run's, and peak memory.
+"""Derivatives through long GONZALEZ-R runs: their compile time, their time against the
+forward run's, and peak memory. On the gearbox (metric the identity) every mode below;
+with `--systems`, also on systems whose metric depends on the configuration, H written
+with a linear solve by M(q) as users write it: the Chaplygin sleigh in canonical
+coordinates (h = 0.1) and Euler's disk (`nhjax.examples.rolling_disk_3d`, h = 0.01) from
+its mass matrix and from its Lagrangian, in the modes `forward`, `reverse` and
+`forward-mode`.
 
 The loss is a smooth function of the final state after N steps at h = 0.1, for each N in
 `--steps` (default 2 000 and 100 000), differentiated with respect to the initial state
@@ -14,7 +19,7 @@ compilation is recorded too, so that what the run itself adds is visible. A
 derivative's time ratio to the forward run comes from its own process, the two timed in
 turn after the memory is recorded.
 
-Run: python benchmarks/gradients.py [--steps N ...] [--repeats R]
+Run: python benchmarks/gradients.py [--steps N ...] [--repeats R] [--systems NAME ...]
 Medians over repeats; results go to benchmarks/results/gradients.json.
 """
 
@@ -40,7 +45,31 @@ def _peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def measure(mode: str, steps: int, repeats: int) -> dict:
+def _system(name: str):
+    """(system, start, step size, args) by name."""
+    import jax
+    import jax.numpy as jnp
+    import nhjax as nh
+
+    if name == "gearbox":
+        gearbox = nh.examples.gearbox()
+        return gearbox.canonical, gearbox.random_initial_state(jax.random.key(0)), 0.1, None
+    if name == "sleigh":
+        sleigh = nh.examples.chaplygin_sleigh()
+        start = sleigh.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), sleigh.args)
+        return sleigh.canonical, start, 0.1, sleigh.args
+    disk = nh.examples.rolling_disk_3d()
+    start = disk.state(jnp.array([0.3, -0.2, 0.4, 0.25, 0.1]), turn_rate=0.6, lean_rate=-0.3, spin_rate=2.5)
+    form = dict(disk=disk.canonical, **{"disk-lagrangian": disk.canonical_from_lagrangian})[name]
+    return form, start, 0.01, disk.args
+
+
+_SYSTEMS = ("gearbox", "sleigh", "disk", "disk-lagrangian")
+# The modes on the systems beside the gearbox: nhjax's default routes.
+_DEFAULT_MODES = ("forward", "reverse", "forward-mode")
+
+
+def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
     """In this process: compile and time the forward run or its gradient."""
     import diffrax
     import jax
@@ -50,8 +79,7 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
     import nhjax as nh
     from _timing import run_and_time, run_and_time_interleaved, timed
 
-    gearbox = nh.examples.gearbox()
-    y0 = gearbox.random_initial_state(jax.random.key(0))
+    system, y0, dt, args = _system(system_name)
     # Each mode: the adjoint (None: nhjax's default) and what is taken of the loss.
     adjoint, transform = {
         "forward": (None, lambda function: function),
@@ -63,9 +91,7 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
     }[mode]
 
     def loss(y0):
-        solution = nh.integrate(
-            gearbox.canonical, nh.GonzalezR(), y0, 0.1, steps, save_every=steps, adjoint=adjoint
-        )
+        solution = nh.integrate(system, nh.GonzalezR(), y0, dt, steps, args=args, save_every=steps, adjoint=adjoint)
         q, p = solution.ys
         return jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
 
@@ -89,8 +115,10 @@ def measure(mode: str, steps: int, repeats: int) -> dict:
     return result
 
 
-def _in_subprocess(mode: str, steps: int, repeats: int) -> dict:
-    command = [sys.executable, __file__, "--child", mode, "--steps", str(steps), "--repeats", str(repeats)]
+def _in_subprocess(system: str, mode: str, steps: int, repeats: int) -> dict:
+    command = [
+        sys.executable, __file__, "--child", mode, "--systems", system, "--steps", str(steps), "--repeats", str(repeats)
+    ]
     output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
     return json.loads(output.strip().splitlines()[-1])
 
@@ -99,22 +127,35 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--steps", type=int, nargs="+", default=[2_000, 100_000])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--systems", nargs="+", choices=_SYSTEMS, default=["gearbox"])
     parser.add_argument("--child", choices=_MODES)
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gradients.json"))
     options = parser.parse_args()
     if options.child:
-        print(json.dumps(measure(options.child, options.steps[0], options.repeats)))
+        print(json.dumps(measure(options.systems[0], options.child, options.steps[0], options.repeats)))
         return
 
-    from _timing import write
+    import jax
+    from _timing import machine, write
 
-    results = dict(dt=0.1, runs={})
-    for steps in options.steps:
-        run = {}
-        for mode in _MODES:
-            run[mode] = _in_subprocess(mode, steps, options.repeats)
-            print(f"{steps} steps, {mode}: {run[mode]}", flush=True)
-        results["runs"][str(steps)] = run
+    path = pathlib.Path(options.out)
+    results = json.loads(path.read_text()) if path.exists() else {}
+    results.setdefault("runs", {})
+    results.setdefault("systems", {})
+    for system in options.systems:
+        modes = _MODES if system == "gearbox" else _DEFAULT_MODES
+        for steps in options.steps:
+            run = {}
+            for mode in modes:
+                run[mode] = _in_subprocess(system, mode, steps, options.repeats)
+                print(f"{system}, {steps} steps, {mode}: {run[mode]}", flush=True)
+            if system == "gearbox":
+                results["dt"] = 0.1
+                results["runs"][str(steps)] = run
+            else:
+                entry = results["systems"].setdefault(system, {})
+                entry[str(steps)] = run
+                entry["jax"], entry["machine"] = jax.__version__, machine()
     write(results, options.out)
 
 

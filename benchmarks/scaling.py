@@ -25,14 +25,28 @@ metric that depends on q: a system as a mechanician derives it) in both its form
 Hamiltonian from the mass matrix and the Lagrangian (`from_lagrangian`), every method,
 h = 0.01 from a generic start.
 
-Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R]
+Against SciPy (`--parts scipy`): the same disk to t = 10 as a mechanician who derives it
+with sympy would integrate it, SciPy's DOP853 on the equations of
+`sympy.physics.mechanics.KanesMethod` (`kane.py`, lambdified to NumPy), against nhjax's
+energy-exact runs of its Lagrangian form: the projected Dopri8 over tolerances (one
+compiled program, the tolerance traced), GONZALEZ-R and its compositions of order 4
+and 6 over step sizes (one compiled program each, `n_steps` traced up to a bound). The
+error is the largest difference of positions and velocities at t = 10 from DOP853 at
+rtol = atol = 1e-13; times are medians after set-up and compilation, which are reported
+apart. For each target error, the cheapest run of each side that reaches it, and their
+ratio.
+
+Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R] [--parts family,disk,scipy]
 Results go to benchmarks/results/scaling.json and a log-log plot beside it,
 scaling.png.
 """
 
 import argparse
+import json
 import pathlib
 import resource
+import statistics
+import time
 
 import jax
 import jax.numpy as jnp
@@ -122,10 +136,22 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="4,8,16,32,64")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--parts", default="family,disk,scipy")
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "scaling.json"))
     options = parser.parse_args()
     sizes = [int(size) for size in options.sizes.split(",")]
+    parts = options.parts.split(",")
     methods = {name: method for name, method in METHODS.items() if not method.adapted}
+    path = pathlib.Path(options.out)
+    # Parts not run this time keep their last results.
+    results = json.loads(path.read_text()) if path.exists() else {}
+    if "scipy" in parts:
+        results["rolling_disk_3d_against_scipy"] = _against_scipy(options.repeats)
+    if "disk" in parts:
+        results["rolling_disk_3d"] = _disk(methods, options.repeats)
+    if "family" not in parts:
+        write(results, options.out)
+        return
 
     table = {}
     for n in sizes:
@@ -142,8 +168,6 @@ def main():
             flush=True,
         )
 
-    disk = _disk(methods, options.repeats)
-
     large = [n for n in sizes if n >= 16]
     growth = {}
     for name in ["yardstick", *methods]:
@@ -153,18 +177,22 @@ def main():
     for name, exponent in growth.items():
         print(f"  {name:<18} grows like n^{exponent:.2f} from n = {large[0]} to {large[-1]}")
 
-    write(dict(system="synthetic: H = |p|^2/2 + |q|^2/2 + sum(1 - cos(q_i - q_{i-1})), k = n/4 rows", h=H,
-               sizes=table, growth_exponent_from_16=growth, rolling_disk_3d=disk), options.out)
+    results.update(system="synthetic: H = |p|^2/2 + |q|^2/2 + sum(1 - cos(q_i - q_{i-1})), k = n/4 rows", h=H,
+                   sizes=table, growth_exponent_from_16=growth)
+    write(results, options.out)
     _plot(table, ["yardstick", *methods], pathlib.Path(options.out).with_suffix(".png"))
 
 
 DISK_STEPS = 2000
 
 
+DISK_START = dict(q=jnp.array([0.3, -0.2, 0.4, 0.25, 0.1]), turn_rate=0.6, lean_rate=-0.3, spin_rate=2.5)
+
+
 def _disk(methods, repeats):
     """Every method on Euler's disk in both forms: µs/step, compile s, iterations."""
     disk = nh.examples.rolling_disk_3d()
-    y0 = disk.state(jnp.array([0.3, -0.2, 0.4, 0.25, 0.1]), turn_rate=0.6, lean_rate=-0.3, spin_rate=2.5)
+    y0 = disk.state(**DISK_START)
     forms = dict(mass_matrix_hamiltonian=disk.canonical, lagrangian=disk.canonical_from_lagrangian)
     results = {}
     for form, system in forms.items():
@@ -179,6 +207,102 @@ def _disk(methods, repeats):
             flush=True,
         )
     return results
+
+
+T1 = 10.0
+TARGETS = (1e-6, 1e-8, 1e-10)
+
+
+def _against_scipy(repeats):
+    """SciPy's DOP853 on Kane's equations against nhjax's energy-exact runs, Euler's disk
+    to t = 10 (see the module docstring)."""
+    import diffrax
+    import scipy.integrate
+    from kane import kanes_equations, PARAMETERS
+
+    disk = nh.examples.rolling_disk_3d()
+    system = disk.canonical_from_lagrangian
+    q0, p0 = disk.state(**DISK_START)
+    velocity = jax.jit(lambda q, p: system.velocity(q, p, disk.args))
+    start = time.perf_counter()
+    field = kanes_equations()
+    sympy_setup_s = time.perf_counter() - start
+    parameters = tuple(disk.args[name] for name in PARAMETERS)
+
+    def kane_rhs(_, state):
+        qdot, udot = field(state[:5], state[5:], parameters)
+        return np.concatenate([qdot, udot])
+
+    initial = np.concatenate([np.asarray(q0), np.asarray(velocity(q0, p0))])
+
+    def dop853(tolerance):
+        return scipy.integrate.solve_ivp(kane_rhs, (0.0, T1), initial, method="DOP853", rtol=tolerance, atol=tolerance)
+
+    reference = dop853(1e-13).y[:, -1]
+
+    def error(q, p):
+        return float(np.max(np.abs(np.concatenate([np.asarray(q), np.asarray(velocity(q, p))]) - reference)))
+
+    def median_s(function):
+        function()
+        return statistics.median(timed(function) for _ in range(repeats))
+
+    runs = {"SciPy DOP853 (Kane)": []}
+    for tolerance in (1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12):
+        solution = dop853(tolerance)
+        runs["SciPy DOP853 (Kane)"].append(dict(
+            setting=tolerance, seconds=median_s(lambda tolerance=tolerance: dop853(tolerance)),
+            error=float(np.max(np.abs(solution.y[:, -1] - reference))), steps=int(solution.t.size - 1),
+        ))
+
+    projected = jax.jit(lambda tolerance: nh.integrate_adaptive(
+        system, (q0, p0), T1, disk.args, solver=nh.Projection(diffrax.Dopri8()), rtol=tolerance, atol=tolerance
+    ))
+    compile_s = {"Dopri8 + projection": timed(lambda: projected.lower(1e-8).compile())}
+    runs["Dopri8 + projection"] = []
+    for tolerance in (1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12):
+        solution = projected(tolerance)
+        runs["Dopri8 + projection"].append(dict(
+            setting=tolerance, seconds=median_s(lambda tolerance=tolerance: projected(tolerance)),
+            error=error(solution.ys[0][-1], solution.ys[1][-1]), steps=int(solution.stats["num_steps"]),
+        ))
+
+    fixed = {
+        "GONZALEZ-R": (nh.GonzalezR(), (0.05, 0.02, 0.01, 0.005, 0.002)),
+        "GONZALEZ-R order 4": (nh.Composition(nh.GonzalezR(), 4), (0.2, 0.1, 0.05, 0.025, 0.0125)),
+        "GONZALEZ-R order 6": (nh.Composition(nh.GonzalezR(), 6), (0.25, 0.2, 0.125, 0.1, 0.0625)),
+    }
+    for name, (method, step_sizes) in fixed.items():
+        bound = max(round(T1 / h) for h in step_sizes)
+        run = jax.jit(lambda h, n, method=method, bound=bound: nh.integrate(
+            system, method, (q0, p0), h, n, args=disk.args, save_every=bound, max_steps=bound, throw=False
+        ))
+        compile_s[name] = timed(lambda run=run, bound=bound: run.lower(0.1, bound).compile())
+        runs[name] = []
+        for h in step_sizes:
+            n = round(T1 / h)
+            solution = run(h, n)
+            runs[name].append(dict(
+                setting=h, seconds=median_s(lambda run=run, h=h, n=n: run(h, n)),
+                error=error(solution.ys[0][-1], solution.ys[1][-1]), steps=n,
+                successful=bool(solution.result == nh.RESULTS.successful),
+            ))
+
+    cheapest = {}
+    for target in TARGETS:
+        def best(names):
+            reached = [(run["seconds"], name, run["setting"]) for name in names for run in runs[name]
+                       if run["error"] <= target and run.get("successful", True)]
+            return min(reached) if reached else None
+        scipy_best, nhjax_best = best(["SciPy DOP853 (Kane)"]), best([name for name in runs if "SciPy" not in name])
+        cheapest[str(target)] = dict(
+            scipy=scipy_best, nhjax_energy_exact=nhjax_best,
+            ratio=None if not (scipy_best and nhjax_best) else nhjax_best[0] / scipy_best[0],
+        )
+        print(f"error <= {target:g}: SciPy {scipy_best}, nhjax {nhjax_best}, ratio {cheapest[str(target)]['ratio']}")
+    print(f"compile s: {compile_s}; sympy set-up {sympy_setup_s:.2f} s", flush=True)
+    return dict(t1=T1, form="from_lagrangian", sympy_setup_s=sympy_setup_s, compile_s=compile_s, runs=runs,
+                cheapest=cheapest)
 
 
 def _plot(table, names, path):

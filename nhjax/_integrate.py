@@ -656,7 +656,8 @@ def integrate_adaptive(
     `nhjax.integrate` with that solver.
 
     **Arguments:** `save_at`, the times to save (default `[t0, t1]`, inside `[t0, t1]`);
-    `rtol`, `atol` for the controller, `None` for the default of the state's dtype,
+    `rtol`, `atol` for the controller (traced ones too: a sweep of tolerances compiles
+    once), `None` for the default of the state's dtype,
     `default_tolerance` ($10^{-12}$ in float64; in float32, whose rounding is
     $1.2\cdot10^{-7}$, $100\epsilon = 1.2\cdot10^{-5}$, so that the controller does not
     chase the rounding with ever smaller steps); `max_steps`; `throw` and `adjoint` as
@@ -671,7 +672,10 @@ def integrate_adaptive(
     dtype = _state_dtype(y0)
     rtol = default_tolerance(dtype) if rtol is None else rtol
     atol = default_tolerance(dtype) if atol is None else atol
-    if not (rtol > 0 and atol > 0):
+    for value in (rtol, atol):
+        if jnp.ndim(value) != 0:
+            raise ValueError(f"rtol and atol must be scalars, got shapes {jnp.shape(rtol)} and {jnp.shape(atol)}.")
+    if not any(isinstance(value, jax.core.Tracer) for value in (rtol, atol)) and not (rtol > 0 and atol > 0):
         raise ValueError(f"rtol and atol must be positive, got rtol={rtol}, atol={atol}.")
     for name, value in (("t0", t0), ("t1", t1)):
         if not isinstance(value, jax.core.Tracer) and not math.isfinite(value):
@@ -693,8 +697,8 @@ def integrate_adaptive(
         save_at,
         in_state_dtype(trace_floats(args), dtype),
         _adjoint_or_default(adjoint),
-        rtol=float(rtol),
-        atol=float(atol),
+        jnp.asarray(rtol, dtype=dtype),
+        jnp.asarray(atol, dtype=dtype),
         max_steps=int(max_steps),
     )
     if throw:
@@ -709,8 +713,13 @@ def default_tolerance(dtype) -> float:
 
 
 @eqx.filter_jit
-def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, *, rtol, atol, max_steps):
-    initial_result = first_failure(args_result(args), system.initial_state_result(y0, args))
+def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, rtol, atol, *, max_steps):
+    valid_tolerances = (rtol > 0) & (atol > 0) & jnp.isfinite(rtol) & jnp.isfinite(atol)
+    initial_result = first_failure(
+        RESULTS.where(valid_tolerances, RESULTS.successful, RESULTS.invalid_tolerance),
+        args_result(args),
+        system.initial_state_result(y0, args),
+    )
     cannot_start = initial_result != RESULTS.successful
     y_start = nan_where_failed(cannot_start, y0, y0)
     # A trajectory that cannot start integrates over no time: from a NaN state the

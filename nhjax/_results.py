@@ -78,6 +78,7 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "states from that step on are not finite."
     )
     invalid_n_steps = "The number of steps n_steps must lie in [1, max_steps]."
+    invalid_tolerance = "The tolerances rtol and atol must be positive and finite."
 
 
 _TRANSLATED = (

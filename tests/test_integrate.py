@@ -270,6 +270,24 @@ def test_adaptive_baseline_bad_input_and_result_codes():
     np.testing.assert_array_equal(batch == nh.RESULTS.constraint_violated_initially, [False, True])
 
 
+def test_a_sweep_of_traced_tolerances_compiles_once():
+    """Tighter traced tolerances, one compiled program: more steps, smaller errors
+    against the tightest; a traced tolerance that is not positive gets a code."""
+    y0 = GEARBOX.random_initial_state(jax.random.key(0))
+    run = jax.jit(lambda tol: nh.integrate_adaptive(GEARBOX.canonical, y0, 5.0, rtol=tol, atol=tol, throw=False))
+    reference = nh.integrate_adaptive(GEARBOX.canonical, y0, 5.0, rtol=1e-12, atol=1e-12).ys[0][-1]
+    errors, steps = [], []
+    for tol in (1e-4, 1e-6, 1e-8):
+        solution = run(tol)
+        assert solution.result == nh.RESULTS.successful
+        errors.append(float(jnp.max(jnp.abs(solution.ys[0][-1] - reference))))
+        steps.append(int(solution.stats["num_steps"]))
+    assert run._cache_size() == 1
+    assert steps[0] < steps[1] < steps[2] and errors[0] > errors[1] > errors[2]
+    for bad in (0.0, -1e-6, jnp.nan):
+        assert run(bad).result == nh.RESULTS.invalid_tolerance
+
+
 def test_a_diffrax_solver_that_blows_up_gets_a_result_code():
     """Explicit Euler far beyond its stability limit overflows to inf and NaN: a
     fixed-step diffrax solver does not report that itself, nh.integrate does."""
