@@ -261,14 +261,14 @@ def default_adjoint(system, method, y0, args, dt, n_steps: int) -> diffrax.Recur
     return diffrax.RecursiveCheckpointAdjoint()
 
 
-def replays_derivatives(system, method, y0, args, dt, n_steps: int) -> bool:
+def replays_derivatives(system, method, y0, args, dt, n_steps: int, bounded: bool = False) -> bool:
     """Whether the derivatives of a run without a given `adjoint` come from its stored
     roots (`nhjax._replay`): for an nhjax method (`nhjax._solver.base.AbstractMethod`)
     whose roots and replayed states for `n_steps` steps fit in
     `CHECKPOINT_BUDGET_BYTES` per trajectory; otherwise `default_adjoint`."""
     if not isinstance(method, AbstractMethod):
         return False
-    return n_steps * replay_storage_bytes(system, method, y0, args, dt) <= CHECKPOINT_BUDGET_BYTES
+    return n_steps * replay_storage_bytes(system, method, y0, args, dt, bounded) <= CHECKPOINT_BUDGET_BYTES
 
 
 def _state_dtype(y0: PyTree) -> Any:
@@ -377,7 +377,9 @@ def integrate(
         in_state_dtype(trace_floats(args), dtype),
         jnp.asarray(check_constraint, dtype=bool),
         _checked_adjoint(adjoint),
-        jnp.asarray(n_steps, dtype=jnp.int32),
+        # Without a bound the count stays a Python int, static like the bound itself,
+        # and the run's loops take exactly that many steps.
+        int(n_steps) if max_steps is None else jnp.asarray(n_steps, dtype=jnp.int32),
         max_steps=int(n_steps if max_steps is None else max_steps),
         save_every=int(save_every),
         progress=bool(progress),
@@ -507,7 +509,7 @@ def _integrate_differentiably(system, method, y0, dt, t0, args, check_constraint
     roots (`nhjax._replay.replayed_run`) where they fit the budget
     (`replays_derivatives`), otherwise diffrax's loop with `default_adjoint`."""
     static = dict(max_steps=max_steps, save_every=save_every)
-    if replays_derivatives(system, method, y0, args, dt, max_steps):
+    if replays_derivatives(system, method, y0, args, dt, max_steps, bounded=not isinstance(n_steps, int)):
         run = functools.partial(replayed_run, **static)
     else:
         adjoint = default_adjoint(system, method, y0, args, dt, max_steps)
@@ -534,7 +536,7 @@ def _diffrax_run(system, method, y_start, dt, t0, args, n_steps, *, adjoint, max
         system,
         method,
         t0=t0,
-        t1=t0 + dt * n_steps.astype(dt.dtype),
+        t1=t0 + dt * jnp.asarray(n_steps, dtype=dt.dtype),
         dt0=None,
         y0=y_start,
         args=args,
@@ -576,11 +578,12 @@ def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_s
     state_result = system.initial_state_result(y0, args)
     waived = ~check_constraint & (state_result == RESULTS.constraint_violated_initially)
     valid_dt = jnp.isfinite(dt) & (dt > 0)
-    valid_n_steps = (n_steps >= 1) & (n_steps <= max_steps)
+    valid_n_steps = jnp.asarray((n_steps >= 1) & (n_steps <= max_steps))
     # A trajectory that cannot start still runs (under vmap its neighbours do), from a
     # NaN state at harmless times for one step, so that it stops after one failed step.
     safe_dt = jnp.where(valid_dt, dt, jnp.ones_like(dt))
-    n_steps = jnp.where(valid_n_steps, n_steps, jnp.ones_like(n_steps))
+    if not isinstance(n_steps, int):
+        n_steps = jnp.where(valid_n_steps, n_steps, jnp.ones_like(n_steps))
     step_times = t0 + safe_dt * jnp.arange(max_steps + 1, dtype=dt.dtype)
     end, before_end = step_times[n_steps], step_times[n_steps - 1]
     in_run = jnp.arange(max_steps + 1) <= n_steps

@@ -49,13 +49,13 @@ def tree_bytes(tree) -> int:
     )
 
 
-def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, args, dt) -> int:
+def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, args, dt, bounded: bool = False) -> int:
     """Bytes per step that a derivative through `replayed_run` keeps: the step's root
-    and the replay's state, which holds the state and carry and the last step's start
-    and root."""
+    and the replay's state and carry; for a traced number of steps within a bound
+    (`bounded`), also the last step's start and root."""
 
     carry, root = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y0, dt, args))
-    return tree_bytes((y0, carry, root)) + tree_bytes((y0, carry, root, dt))
+    return tree_bytes((y0, carry, root)) * (2 if bounded else 1)
 
 
 def _first_carry_and_unknowns(system, method, y0, dt, args):
@@ -125,6 +125,10 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
     def step(state, inputs):
         y, carry, last = state
         k, root, success = inputs
+        if isinstance(n_steps, int):  # static: every step is in the run
+            y1, carry1 = method.replay_step(system, _step_size(t0, dt, k), y, args, carry, root)
+            y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
+            return (y1, carry1, last), None
         in_run = k < n_steps
         replayed = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y, carry, root, k), last)
         y_k, carry_k, root_k, index = replayed
@@ -142,7 +146,7 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
         lambda x: x.reshape(n_saves, save_every, *x.shape[1:]),
         (jnp.arange(roots.shape[0]), roots, succeeded),
     )
-    first_step = (y_start, carry, roots[0], jnp.array(0))
+    first_step = None if isinstance(n_steps, int) else (y_start, carry, roots[0], jnp.array(0))
     _, (ys, observed) = lax.scan(between_saves, (y_start, carry, first_step), blocks)
     first = jax.tree.map(lambda x: x[None], (y_start, system.observables(y_start, args)))
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
