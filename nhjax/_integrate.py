@@ -147,7 +147,9 @@ def check_step_size(dt, t0=0.0) -> None:
     for name, value in (("dt", dt), ("t0", t0)):
         if jnp.ndim(value) != 0:
             raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(value)}.")
-    if not isinstance(dt, jax.core.Tracer) and not (math.isfinite(dt) and dt > 0):
+    # Concrete values are compared as Python floats: a concrete array closed over by a
+    # jitted function would make a comparison traced.
+    if not isinstance(dt, jax.core.Tracer) and not (math.isfinite(dt) and float(dt) > 0):
         raise ValueError(f"dt must be positive and finite, got dt={dt}.")
     if not isinstance(t0, jax.core.Tracer) and not math.isfinite(t0):
         raise ValueError(f"t0 must be finite, got t0={t0}.")
@@ -678,12 +680,12 @@ def integrate_adaptive(
     for value in (rtol, atol):
         if jnp.ndim(value) != 0:
             raise ValueError(f"rtol and atol must be scalars, got shapes {jnp.shape(rtol)} and {jnp.shape(atol)}.")
-    if not any(isinstance(value, jax.core.Tracer) for value in (rtol, atol)) and not (rtol > 0 and atol > 0):
+    if not any(isinstance(value, jax.core.Tracer) for value in (rtol, atol)) and not (float(rtol) > 0 and float(atol) > 0):
         raise ValueError(f"rtol and atol must be positive, got rtol={rtol}, atol={atol}.")
     for name, value in (("t0", t0), ("t1", t1)):
         if not isinstance(value, jax.core.Tracer) and not math.isfinite(value):
             raise ValueError(f"{name} must be finite, got {name}={value}.")
-    if not isinstance(t1, jax.core.Tracer) and not isinstance(t0, jax.core.Tracer) and not t1 > t0:
+    if not isinstance(t1, jax.core.Tracer) and not isinstance(t0, jax.core.Tracer) and not float(t1) > float(t0):
         raise ValueError(f"t1 must be after t0, got t0={t0}, t1={t1}.")
     t0 = jnp.asarray(t0, dtype=dtype)
     t1 = jnp.asarray(t1, dtype=dtype)

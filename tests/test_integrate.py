@@ -87,6 +87,23 @@ def test_a_step_count_traced_up_to_a_bound_compiles_once_and_saves_what_the_stat
     np.testing.assert_array_equal(batch.stats["num_steps"], [20, 10])
 
 
+def test_concrete_arrays_closed_over_by_a_jitted_function_are_checked_as_concrete():
+    """A step size, step count and tolerances held as concrete arrays and closed over by
+    `jax.jit`: their checks compare Python floats (a comparison of the arrays would be
+    traced there) and still refuse bad values at once."""
+    x0, dt, n = QUARTIC.initial_state(0.5), jnp.asarray(0.1), jnp.asarray(20)
+    run = jax.jit(lambda x: nh.integrate(QUARTIC.adapted, METHOD, x, dt, n, max_steps=20).ys[-1])
+    np.testing.assert_allclose(run(x0), nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 20).ys[-1], rtol=1e-13)
+    negative = jnp.asarray(-0.1)
+    with pytest.raises(ValueError, match="dt must be positive"):
+        jax.jit(lambda x: nh.integrate(QUARTIC.adapted, METHOD, x, negative, 20).ys)(x0)
+    y0, tolerance, negative = GEARBOX.random_initial_state(jax.random.key(0)), jnp.asarray(1e-8), jnp.asarray(-1e-8)
+    adaptive = jax.jit(lambda y: nh.integrate_adaptive(GEARBOX.canonical, y, jnp.asarray(1.0), rtol=tolerance, atol=tolerance).ys)
+    assert bool(jnp.all(jnp.isfinite(adaptive(y0)[0])))
+    with pytest.raises(ValueError, match="rtol and atol must be positive"):
+        jax.jit(lambda y: nh.integrate_adaptive(GEARBOX.canonical, y, 1.0, rtol=negative).ys)(y0)
+
+
 def test_step_counts_outside_the_bound():
     x0 = QUARTIC.initial_state(0.5)
     with pytest.raises(ValueError, match=r"n_steps must lie in \[1, max_steps\] = \[1, 40\], got 41"):
