@@ -14,6 +14,7 @@ import time
 import warnings
 
 from ._methods import METHODS as _REGISTRY
+from ._reproduce import FIGURES
 
 
 def _demo(arguments) -> int:
@@ -56,8 +57,7 @@ def _demo(arguments) -> int:
     return 0
 
 
-# The choices are listed here rather than taken from the library, so that `--help` and
-# argument errors answer without importing JAX.
+# The paper's systems the command sets up, each from a start of its own (`_problem`).
 SYSTEMS = {
     "gearbox": "the gearbox of §4.4 (Figure 3) from a random state on the constraint (--seed, default 0)",
     "quartic": "the chaotic quartic of §4.1, n = 3, H = 3.06: the state of angle --angle (default 0.7), "
@@ -72,7 +72,6 @@ _USER_SYSTEM = {
     "MODULE:FACTORY": "your own system (also --system MODULE:FACTORY): FACTORY() in MODULE returns "
     "(system, (q0, p0), args), the system a nhjax.NonholonomicSystem",
 }
-FIGURES = ("fig1", "fig2", "fig3", "fig4", "fig5")
 _DEFAULT_ANGLE = 0.7
 
 
