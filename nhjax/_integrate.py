@@ -29,7 +29,6 @@ every method.
 
 import functools
 import math
-import numbers
 from collections.abc import Callable
 from typing import Any
 
@@ -44,7 +43,7 @@ from ._replay import replay_storage_bytes, replayed_run, tree_bytes
 from ._results import first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, RESULTS
 from ._solver.base import AbstractMethod, AbstractMethodState
 from ._solver.projection import Projection
-from ._system import AbstractSystem
+from ._system import AbstractSystem, is_int
 
 
 class Solution(eqx.Module):
@@ -99,11 +98,6 @@ def in_state_dtype(args: PyTree, dtype) -> PyTree:
     return jax.tree.map(cast, args)
 
 
-def _is_int(value) -> bool:
-    """An integer, not a bool (`True` is an `Integral` but no step count)."""
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
 def check_step_counts(n_steps, save_every, max_steps=None) -> None:
     """`ValueError` unless `n_steps` and `save_every` are positive ints and `save_every`
     divides `n_steps` (so that the final state is saved).
@@ -111,10 +105,10 @@ def check_step_counts(n_steps, save_every, max_steps=None) -> None:
     With a bound `max_steps` (a positive int that `save_every` divides), `n_steps` may
     be any integer scalar, traced ones included; a concrete one must lie in
     `[1, max_steps]` (a traced one is checked at run time, code `invalid_n_steps`)."""
-    if not _is_int(save_every) or save_every < 1:
+    if not is_int(save_every) or save_every < 1:
         raise ValueError(f"save_every must be a positive int, got {save_every!r}.")
     if max_steps is None:
-        if not _is_int(n_steps) or n_steps < 1:
+        if not is_int(n_steps) or n_steps < 1:
             raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
         if n_steps % save_every != 0:
             raise ValueError(
@@ -122,11 +116,11 @@ def check_step_counts(n_steps, save_every, max_steps=None) -> None:
                 "state is saved."
             )
         return
-    if not _is_int(max_steps) or max_steps < 1:
+    if not is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
     if max_steps % save_every != 0:
         raise ValueError(f"save_every={save_every} must divide max_steps={max_steps}.")
-    if _is_int(n_steps):
+    if is_int(n_steps):
         concrete = n_steps
     elif (
         hasattr(n_steps, "dtype")
@@ -670,7 +664,7 @@ def integrate_adaptive(
     Returns a `Solution` whose `stats` hold `num_steps` (accepted steps) and
     `num_rejected_steps`, and for a `Projection` its iteration counts.
     """
-    if not _is_int(max_steps) or max_steps < 1:
+    if not is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
     system.check_shapes(y0, args)
     check_args(args)

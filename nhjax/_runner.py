@@ -2,7 +2,6 @@
 chunk written to disk at once, and a rerun continuing after the last chunk written."""
 
 import math
-import numbers
 import pathlib
 
 import equinox as eqx
@@ -29,6 +28,7 @@ from ._chunk_files import (
     write_atomically,
 )
 from ._integrate import check_args, check_step_counts, check_step_size, integrate, Solution, trace_floats
+from ._system import is_int
 
 
 # About this many trajectory-steps per chunk by default: a second or so of the slower
@@ -130,7 +130,7 @@ def run_chunked(
     if chunk_steps is None:
         chunk_steps = _default_chunk_steps(n_steps, save_every, batch)
     elif (
-        not isinstance(chunk_steps, numbers.Integral)
+        not is_int(chunk_steps)
         or chunk_steps < 1
         or chunk_steps % save_every != 0
     ):

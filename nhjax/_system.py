@@ -7,6 +7,7 @@ continuous vector field, so any diffrax solver can also integrate them directly.
 """
 
 import abc
+import numbers
 from collections.abc import Callable
 from typing import Any
 
@@ -52,6 +53,11 @@ class AbstractSystem(diffrax.AbstractTerm):
 
     def prod(self, vf, control):
         return jax.tree.map(lambda v: v * control, vf)
+
+
+def is_int(value) -> bool:
+    """An integer, not a bool (`True` is an `Integral` but no count or order)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def require_floating_vector(name: str, x) -> None:

@@ -2,7 +2,6 @@ r"""Higher order by symmetric composition: any symmetric nhjax method lifted to 
 6 or 8, each substep keeping what the method keeps exactly."""
 
 import math
-import numbers
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -14,6 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Int
 
 from .._results import first_failure, RESULTS
+from .._system import is_int
 from .base import AbstractMethod, AbstractMethodState, MethodState, step_return
 from .projection import Projection
 
@@ -93,10 +93,6 @@ RECOMMENDED_SCHEMES = {2: None, 4: "suzuki-4", 6: "kahan-li-6", 8: "kahan-li-8"}
 _COEFFICIENT_TOLERANCE = 1e-12
 
 
-def _is_int(value) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
 def _not_composable(solver) -> str:
     """Why a solver that is not an nhjax method cannot be composed."""
     if isinstance(solver, Projection):
@@ -128,7 +124,7 @@ def _validated_coefficients(coefficients, order) -> tuple[float, ...]:
         )
     if abs(math.fsum(values) - 1) > _COEFFICIENT_TOLERANCE:
         raise ValueError(f"coefficients must sum to 1 (consistency), got a sum of {math.fsum(values)!r}: {values}.")
-    if not _is_int(order) or order < 2 or order % 2:
+    if not is_int(order) or order < 2 or order % 2:
         raise ValueError(f"order must be an even int >= 2 (a symmetric method has even order), got {order!r}.")
     # Exactly symmetric, so that the composed step is as symmetric as the method.
     return tuple((a + b) / 2 for a, b in zip(values, reversed(values)))
@@ -245,7 +241,7 @@ class Composition(diffrax.AbstractSolver):
         if obstacle is not None:
             raise ValueError(f"Composition refuses {type(method).__name__}: {obstacle}.")
         if coefficients is None:
-            if order not in RECOMMENDED_SCHEMES or not _is_int(order):
+            if order not in RECOMMENDED_SCHEMES or not is_int(order):
                 raise ValueError(
                     f"order must be one of {sorted(RECOMMENDED_SCHEMES)} (or give coefficients), got {order!r}."
                 )
