@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._integrate import Solution
-from ._results import RESULTS
+from ._results import result_codes, RESULTS, SUCCESS
 
 
 try:
@@ -43,11 +43,10 @@ def run_id(manifest: dict) -> str:
 
 # Result codes go to disk as the integer inside the enumeration item, its only leaf.
 _RESULT_TREEDEF = jax.tree.structure(RESULTS.successful)
-SUCCESS = int(jax.tree.leaves(RESULTS.successful)[0])
 
 
 def _code(result) -> np.ndarray:
-    return np.asarray(jax.tree.leaves(result)[0])
+    return np.asarray(result_codes(result))
 
 
 def _result(code) -> RESULTS:

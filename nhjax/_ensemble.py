@@ -13,7 +13,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
 from ._integrate import trace_floats, check_args, check_step_counts, check_step_size, integrate, Solution
-from ._results import RESULTS
+from ._results import result_codes, RESULTS, SUCCESS
 from ._system import AbstractSystem
 
 
@@ -144,7 +144,7 @@ def _raise_failures(result: RESULTS) -> None:
     """Raise, naming the first failed trajectory and its failure, if any failed. Done on
     the host: a runtime error inside the sharded program would stop one device while
     the others wait for it."""
-    codes = result._value
+    codes = result_codes(result)
     if isinstance(codes, jax.core.Tracer):
         raise ValueError(
             "integrate_ensemble(..., throw=True) checks the results on the host, so it "
@@ -152,7 +152,7 @@ def _raise_failures(result: RESULTS) -> None:
             "and read Solution.result."
         )
     codes = np.asarray(codes)
-    failed = np.flatnonzero(codes != RESULTS.successful._value)
+    failed = np.flatnonzero(codes != SUCCESS)
     if failed.size:
         first = int(failed[0])
         raise RuntimeError(

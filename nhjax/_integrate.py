@@ -40,7 +40,9 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
 from ._replay import replay_storage_bytes, replayed_run, tree_bytes
-from ._results import first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, RESULTS
+from ._results import (
+    first_failure, from_diffrax, nan_derivatives_where, nan_where_failed, result_codes, RESULTS, SUCCESS
+)
 from ._solver.base import AbstractMethod, AbstractMethodState
 from ._solver.projection import Projection
 from ._system import AbstractSystem, is_int
@@ -390,16 +392,13 @@ def raise_failure(solution: Solution, describe: Callable[[], str]) -> Solution:
     `describe()` (which may read `solution`'s concrete values), when the result is
     concrete; otherwise a runtime error in the traced program, with the code's
     message."""
-    codes = jax.tree.leaves(solution.result)[0]
+    codes = result_codes(solution.result)
     if isinstance(codes, jax.core.Tracer):
         failed = solution.result != RESULTS.successful
         return eqx.tree_at(lambda s: s.ys, solution, solution.result.error_if(solution.ys, failed))
-    if np.any(np.asarray(codes) != _SUCCESS):
+    if np.any(np.asarray(codes) != SUCCESS):
         raise RuntimeError(describe())
     return solution
-
-
-_SUCCESS = int(jax.tree.leaves(RESULTS.successful)[0])
 
 
 def _describe_failure(solution: Solution, dt, t0, n_steps) -> str:

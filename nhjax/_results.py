@@ -81,6 +81,16 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     invalid_tolerance = "The tolerances rtol and atol must be positive and finite."
 
 
+def result_codes(result: RESULTS) -> Array:
+    """The integer codes inside `result` (the enumeration item's only leaf), e.g. to
+    compare with `SUCCESS` on the host or write to disk."""
+    return jax.tree.leaves(result)[0]
+
+
+# The integer code of success.
+SUCCESS = int(result_codes(RESULTS.successful))
+
+
 _TRANSLATED = (
     (diffrax.RESULTS.nonlinear_max_steps_reached, RESULTS.root_find_not_converged),
     (diffrax.RESULTS.nonlinear_divergence, RESULTS.root_find_not_converged),

@@ -23,11 +23,11 @@ from ._chunk_files import (
     open_run,
     run_id,
     run_lock,
-    SUCCESS,
     with_identity,
     write_atomically,
 )
 from ._integrate import check_args, check_step_counts, check_step_size, integrate, Solution, trace_floats
+from ._results import SUCCESS
 from ._system import is_int
 
 
