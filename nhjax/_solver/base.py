@@ -115,13 +115,24 @@ class AbstractMethodState(eqx.Module):
         raise NotImplementedError
 
 
-class MethodState(AbstractMethodState):
+class AbstractCountingState(AbstractMethodState):
+    """A solver state that counts root-finder (or projection) iterations: in all, and
+    the most at one step."""
+
+    total_steps: Int[Array, ""]
+    max_steps: Int[Array, ""]
+
+    def statistics(self) -> dict[str, Array]:
+        """`root_find_steps`, iterations in all, and `max_root_find_steps`, the most in
+        one step."""
+        return dict(root_find_steps=self.total_steps, max_root_find_steps=self.max_steps)
+
+
+class MethodState(AbstractCountingState):
     """The diffrax solver state of an nhjax method: root-finder iterations so far, the
     nhjax code of the step that failed, if one did, and what the method carries from
     one step to the next (`AbstractMethod.initial_carry`)."""
 
-    total_steps: Int[Array, ""]
-    max_steps: Int[Array, ""]
     failure: RESULTS
     carry: PyTree = None
 
@@ -129,11 +140,6 @@ class MethodState(AbstractMethodState):
         return MethodState(
             self.total_steps + steps, jnp.maximum(self.max_steps, steps), failure, carry
         )
-
-    def statistics(self) -> dict[str, Array]:
-        """`root_find_steps`, iterations in all, and `max_root_find_steps`, the most in
-        one step."""
-        return dict(root_find_steps=self.total_steps, max_root_find_steps=self.max_steps)
 
 
 # Points are rounded twice per residual (the midpoint and the end), each to half an

@@ -19,7 +19,7 @@ from .._system import AbstractSystem
 from .base import (
     _implicit_root,
     AbstractMethod,
-    AbstractMethodState,
+    AbstractCountingState,
     all_finite,
     default_root_finder,
     no_gradient,
@@ -30,21 +30,15 @@ from .base import (
 from .chord import PresetChord
 
 
-class ProjectionState(AbstractMethodState):
-    """The diffrax solver state of a `Projection`: the wrapped solver's state, the
-    energy level every step is projected onto (the energy at the start of the run), the
-    code of the step that failed, if one did, and the projection's iteration counts."""
+class ProjectionState(AbstractCountingState):
+    """The diffrax solver state of a `Projection`: the projection's iteration counts,
+    the wrapped solver's state, the energy level every step is projected onto (the
+    energy at the start of the run), and the code of the step that failed, if one
+    did."""
 
     inner: PyTree
     energy: Scalar
     failure: RESULTS
-    total_steps: Int[Array, ""]
-    max_steps: Int[Array, ""]
-
-    def statistics(self) -> dict[str, Array]:
-        """`root_find_steps`, the projection's iterations in all, and
-        `max_root_find_steps`, the most at one step."""
-        return dict(root_find_steps=self.total_steps, max_root_find_steps=self.max_steps)
 
 
 class _ProjectionData(eqx.Module):
