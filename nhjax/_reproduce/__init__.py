@@ -1,6 +1,7 @@
-"""The paper's numerical experiments (§4: Figures 1 to 3) and a work-precision diagram
-beyond it (Figure 4), computed, plotted, checked against the paper's claims and written
-up: `reproduce`, behind `nhjax reproduce`.
+"""The paper's numerical experiments (§4: Figures 1 to 3) and two beyond it, a
+work-precision diagram (Figure 4) and the contact oscillator in a reversible and a
+non-reversible form (Figure 5), computed, plotted, checked against the paper's claims
+and written up: `reproduce`, behind `nhjax reproduce`.
 
 Each experiment writes `figN.png` into the output folder; `results.json` holds the
 numbers behind them, each experiment's checks (what was measured and the criterion it
