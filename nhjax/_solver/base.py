@@ -323,9 +323,10 @@ class AbstractMethod(diffrax.AbstractSolver):
         (`step_failure`).
 
         diffrax traces a solver's step several times (to learn its output structure,
-        then in its loop, and again for derivatives), so the step is a `jax.jit` call
-        with the method, the system and the static arguments as its static arguments:
-        JAX traces it once for them and the shapes of the rest, and reuses the trace."""
+        then in its loop, and again for derivatives), so `solve_step` runs the step
+        through `_traced_once`, a `jax.jit` call with the method, the system and the
+        static arguments as its static arguments: JAX traces it once for them and the
+        shapes of the rest, and reuses the trace."""
         y1, solver_state, failure, _ = self.solve_step(system, h, y0, args, solver_state)
         return y1, solver_state, failure
 
