@@ -101,7 +101,9 @@ def test_what_no_run_can_do_is_refused_before_any_work(tmp_path, capsys):
     traceback, nothing written."""
     out = str(tmp_path / "x.npz")
     base = ["simulate", "gearbox", "--t1", "1", "--no-progress", "--out", out]
-    assert main([*base, "--method", "gonzalez-f", "--order", "4", "--dt", "0.1"]) == 2
+    with pytest.raises(SystemExit) as exit_status:
+        main([*base, "--method", "gonzalez-f", "--order", "4", "--dt", "0.1"])
+    assert exit_status.value.code == 2
     assert "argument --order: Composition refuses GonzalezF" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exit_status:
         main([*base, "--method", "sidla", "--dt", "1e-300"])
