@@ -3,28 +3,22 @@ method (`integrate`), and adaptive steps of a standard diffrax solver on the sys
 vector field (`integrate_adaptive`), the non-geometric baseline and the tests' reference.
 
 **What a step costs.** For the implicit methods, the method's root find: for GONZALEZ-R
-the chord matrix and about four residuals (see `nhjax._solver.gonzalez_r`); around it
-the loop adds diffrax's bookkeeping and, at each save, the energy and constraint
-residual. In the compiled program of 2000 GONZALEZ-R steps on the gearbox saved once
-(`benchmarks/gradients.py`'s loss; 6029 HLO instructions) the step is 1952
-instructions and diffrax's loop around it 218; outside the loop, diffrax's end-time
-clipping (t1 less 100 ulps, one `prevbefore` after another) is 1504 and the checks
-of the start and the saves about 1250, which cost compile time only. Run time goes to
-the step: the same steps in a bare `lax.scan` take about 0.9 times as long
-(`python benchmarks/gonzalez_r.py`).
+the chord matrix and a few residuals (see `nhjax._solver.gonzalez_r`); around it the
+loop adds diffrax's bookkeeping and, at each save, the energy and constraint residual.
+Outside the loop, diffrax's end-time clipping and the checks of the start and the saves
+cost compile time only. `python benchmarks/gonzalez_r.py` times the loop against a bare
+`lax.scan` of the same steps.
 
 Derivatives of a run with an nhjax method come from its stored roots
 (`nhjax._replay`): the run once by the root finder, keeping each step's root, then per
 step one replay of the step from its root and the transpose (reverse mode) or the
 tangent (forward mode) of its linearisation, with no root finder in the derivative.
 The derivative rule wraps the compiled run, so that the derivative program of a
-replayed run never traces diffrax's loop. For the loss above, the reverse-mode program
-is 10240 instructions: the recording scan 2380 (the step and its bookkeeping) and the replay's linearisation
-and transpose most of the rest; it runs in about 3 times the forward run, forward mode
-(`jax.jacfwd`, 6 tangents) likewise. `python benchmarks/gradients.py` measures the
-time, compile time and peak memory of both against the forward run, and against
-diffrax's checkpointed adjoints; `python benchmarks/suite.py` the forward steps of
-every method.
+replayed run never traces diffrax's loop: it holds the recording scan (the step and its
+bookkeeping) and the replay's linearisation and transpose. `python
+benchmarks/gradients.py` measures the time, compile time and peak memory of reverse and
+forward mode against the forward run, and against diffrax's checkpointed adjoints;
+`python benchmarks/suite.py` the forward steps of every method.
 """
 
 import functools
