@@ -58,8 +58,10 @@ def _system(name: str):
         sleigh = nh.examples.chaplygin_sleigh()
         start = sleigh.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), sleigh.args)
         return sleigh.canonical, start, 0.1, sleigh.args
+    from scaling import DISK_START
+
     disk = nh.examples.rolling_disk_3d()
-    start = disk.state(jnp.array([0.3, -0.2, 0.4, 0.25, 0.1]), turn_rate=0.6, lean_rate=-0.3, spin_rate=2.5)
+    start = disk.state(**DISK_START)
     form = dict(disk=disk.canonical, **{"disk-lagrangian": disk.canonical_from_lagrangian})[name]
     return form, start, 0.01, disk.args
 

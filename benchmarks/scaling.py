@@ -45,7 +45,6 @@ import argparse
 import json
 import pathlib
 import resource
-import statistics
 import time
 
 import jax
@@ -243,15 +242,11 @@ def _against_scipy(repeats):
     def error(q, p):
         return float(np.max(np.abs(np.concatenate([np.asarray(q), np.asarray(velocity(q, p))]) - reference)))
 
-    def median_s(function):
-        function()
-        return statistics.median(timed(function) for _ in range(repeats))
-
     runs = {"SciPy DOP853 (Kane)": []}
     for tolerance in (1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12):
-        solution = dop853(tolerance)
+        solution, seconds = run_and_time(dop853, tolerance, repeats=repeats)
         runs["SciPy DOP853 (Kane)"].append(dict(
-            setting=tolerance, seconds=median_s(lambda tolerance=tolerance: dop853(tolerance)),
+            setting=tolerance, seconds=seconds,
             error=float(np.max(np.abs(solution.y[:, -1] - reference))), steps=int(solution.t.size - 1),
         ))
 
@@ -261,9 +256,9 @@ def _against_scipy(repeats):
     compile_s = {"Dopri8 + projection": timed(lambda: projected.lower(1e-8).compile())}
     runs["Dopri8 + projection"] = []
     for tolerance in (1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12):
-        solution = projected(tolerance)
+        solution, seconds = run_and_time(projected, tolerance, repeats=repeats)
         runs["Dopri8 + projection"].append(dict(
-            setting=tolerance, seconds=median_s(lambda tolerance=tolerance: projected(tolerance)),
+            setting=tolerance, seconds=seconds,
             error=error(solution.ys[0][-1], solution.ys[1][-1]), steps=int(solution.stats["num_steps"]),
         ))
 
@@ -281,9 +276,9 @@ def _against_scipy(repeats):
         runs[name] = []
         for h in step_sizes:
             n = round(T1 / h)
-            solution = run(h, n)
+            solution, seconds = run_and_time(run, h, n, repeats=repeats)
             runs[name].append(dict(
-                setting=h, seconds=median_s(lambda run=run, h=h, n=n: run(h, n)),
+                setting=h, seconds=seconds,
                 error=error(solution.ys[0][-1], solution.ys[1][-1]), steps=n,
                 successful=bool(solution.result == nh.RESULTS.successful),
             ))
