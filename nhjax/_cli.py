@@ -13,8 +13,9 @@ import threading
 import time
 import warnings
 
-from ._methods import METHODS as _REGISTRY
+from ._methods import integrates_adapted, METHODS
 from ._reproduce import FIGURES
+from .examples import EXAMPLES
 
 
 def _demo(arguments) -> int:
@@ -57,22 +58,22 @@ def _demo(arguments) -> int:
     return 0
 
 
-# The paper's systems the command sets up, each from a start of its own (`_problem`).
-SYSTEMS = {
-    "gearbox": "the gearbox of §4.4 (Figure 3) from a random state on the constraint (--seed, default 0)",
-    "quartic": "the chaotic quartic of §4.1, n = 3, H = 3.06: the state of angle --angle (default 0.7), "
-    "or of a random angle with --seed",
-    "sleigh": "the Chaplygin sleigh of §4.2, J = 8, a = m = 1, from Figure 2's start "
-    "(x1 = -5, x2 = 0, theta = 0.1, rho1 = 0.001, rho2 = -0.6)",
-    "disk": "the rolling disk of §2 (m = r = 1, J_theta = 1/4, J_phi = 1/2) with rho1 = 1.3, rho2 = 0.9",
-}
-# The methods for the canonical systems the command simulates.
-METHODS = {name: method for name, method in _REGISTRY.items() if not method.adapted}
+# The systems the command sets up: every example, each from its usual start.
+SYSTEMS = {name: example.title for name, example in EXAMPLES.items()}
+
+
+def _system_listing() -> dict[str, str]:
+    """Each example's line with its forms and the names --start takes."""
+    listing = {}
+    for name, example in EXAMPLES.items():
+        made = example()
+        choices = ", ".join(f"{choice} = {default}" for choice, default in made.initial_state_choices().items())
+        listing[name] = f"{example.title}; forms: {', '.join(made.forms())}; --start {choices}"
+    return listing
 _USER_SYSTEM = {
     "MODULE:FACTORY": "your own system (also --system MODULE:FACTORY): FACTORY() in MODULE returns "
     "(system, (q0, p0), args), the system a nhjax.NonholonomicSystem",
 }
-_DEFAULT_ANGLE = 0.7
 
 
 class _FactoryError(Exception):
@@ -118,36 +119,31 @@ def _user_problem(spec: str):
     return system, y0, args, f"{spec}()"
 
 
-def _problem(arguments):
-    """(system, initial state (q, p), args, a description) of the chosen example, in
-    canonical coordinates, or of the user's factory."""
-    import jax
+def _form(arguments) -> str:
+    """The form of the system the method integrates: "adapted" (the reduced equations)
+    or "canonical"."""
+    return "adapted" if integrates_adapted(METHODS[arguments.method].solver) else "canonical"
 
-    import nhjax as nh
+
+def _problem(arguments):
+    """(system, initial state, args, a description) of the chosen example in the form
+    its method integrates, or of the user's factory."""
+    import jax
 
     if _is_factory(arguments.system):
         return _user_problem(arguments.system)
-    if arguments.system == "gearbox":
-        gearbox = nh.examples.gearbox()
-        seed = 0 if arguments.seed is None else arguments.seed
-        state = gearbox.random_initial_state(jax.random.key(seed))
-        return gearbox.canonical, state, gearbox.args, f"gearbox (§4.4), random state of seed {seed}"
-    if arguments.system == "quartic":
-        quartic = nh.examples.chaotic_quartic(3)
-        if arguments.seed is None:
-            angle = _DEFAULT_ANGLE if arguments.angle is None else arguments.angle
-            x0, start = quartic.initial_state(angle), f"angle {angle}"
-        else:
-            x0 = quartic.random_initial_states(jax.random.key(arguments.seed), 1)[0]
-            start = f"random angle of seed {arguments.seed}"
-        return quartic.canonical, quartic.from_adapted(x0), quartic.args, f"chaotic quartic (§4.1), n = 3, H = 3.06, {start}"
-    if arguments.system == "sleigh":
-        sleigh = nh.examples.chaplygin_sleigh(J=8.0, a=1.0, m=1.0)
-        state = sleigh.from_adapted(sleigh.initial_state())
-        return sleigh.canonical, state, sleigh.args, "Chaplygin sleigh (§4.2), J = 8, a = m = 1, Figure 2's start"
-    disk = nh.examples.rolling_disk()
-    state = disk.from_adapted(disk.initial_state(rho1=1.3, rho2=0.9))
-    return disk.canonical, state, disk.args, "rolling disk (§2), rho = (1.3, 0.9)"
+    example = EXAMPLES[arguments.system]()
+    form = _form(arguments)
+    if arguments.seed is not None:
+        state = example.start(form, key=jax.random.key(arguments.seed))
+        start = f"random state of seed {arguments.seed}"
+    else:
+        choices = example.initial_state_choices() | dict(arguments.start)
+        state = example.start(form, **dict(arguments.start))
+        start = ", ".join(f"{name} = {value}" for name, value in choices.items())
+    parameters = ", ".join(f"{name} = {value}" for name, value in example.parameters().items())
+    description = f"{example.name} ({parameters})" if parameters else example.name
+    return example.system(form), state, example.args, f"{description}, {form} form, from {start}"
 
 
 ORDERS = (2, 4, 6, 8)
@@ -211,11 +207,13 @@ def _simulate(arguments, n_steps: int) -> int:
         return 1
     elapsed = time.perf_counter() - start
 
-    q, p = (np.asarray(leaf) for leaf in solution.ys)
-    trajectory = dict(
-        ts=np.asarray(solution.ts), q=q, p=p, energy=np.asarray(solution.energy),
-        constraint=np.asarray(solution.constraint),
-    )
+    # Canonical runs save (q, p) and the constraint residual; adapted ones their state x,
+    # in which the constraint holds by construction.
+    states = dict(zip(("q", "p"), solution.ys)) if isinstance(solution.ys, tuple) else dict(x=solution.ys)
+    trajectory = dict(ts=solution.ts, **states, energy=solution.energy)
+    if solution.constraint is not None:
+        trajectory["constraint"] = solution.constraint
+    trajectory = {name: np.asarray(values) for name, values in trajectory.items()}
     try:
         write_atomically(out, lambda file: np.savez(file, **trajectory))
     except OSError as error:
@@ -235,19 +233,24 @@ def _simulate(arguments, n_steps: int) -> int:
     print(f"  steps                              {n_steps}" + (f" (resumed: {on_disk} chunks were on disk)" if on_disk else ""))
     print(f"  saves                              {energy.shape[0]}, written to {out}")
     print(f"  max relative energy error          {np.max(np.abs(energy - energy[0])) / scale:.2e}")
-    print(f"  max constraint error |A(q) dH/dp|  {np.max(np.abs(trajectory['constraint'])):.2e}")
+    if "constraint" in trajectory:
+        print(f"  max constraint error |A(q) dH/dp|  {np.max(np.abs(trajectory['constraint'])):.2e}")
+    else:
+        print("  constraint                         kept by the adapted coordinates")
     print(f"  result                             {nh.RESULTS[solution.result] or 'successful'}")
     print(f"  wall time (with compilation)       {elapsed:.2f} s")
     return 0
 
 
 def _disk_shortfall(out: pathlib.Path, system, y0, args, saves: int) -> str | None:
-    """Why the saves cannot fit on the disk of `out`, or `None`: each save holds t, q, p,
-    the energy and the constraint residual in float64, written twice (the chunks, then
-    the trajectory)."""
-    q, _ = y0
-    rows = system.constraints(q, args).shape[0]
-    needed = 2 * saves * 8 * (2 + 2 * q.shape[0] + rows)
+    """Why the saves cannot fit on the disk of `out`, or `None`: each save holds t, the
+    state, the energy and any constraint residual in float64, written twice (the
+    chunks, then the trajectory)."""
+    import jax
+
+    state = sum(leaf.size for leaf in jax.tree.leaves(y0))
+    rows = system.constraints(y0[0], args).shape[0] if hasattr(system, "constraints") else 0
+    needed = 2 * saves * 8 * (2 + state + rows)
     folder = out.absolute().parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
@@ -336,11 +339,12 @@ def main(argv=None) -> int:
         description=textwrap.fill(
             "Integrate one of the paper's systems or your own (canonical coordinates, float64) with one "
             "method, write the saved trajectory to an .npz file (arrays ts, q, p, energy, "
-            "constraint) and print the energy and constraint errors. The run goes in chunks "
+            "constraint; ts, x, energy for a method on the reduced equations in adapted coordinates) "
+            "and print the energy and constraint errors. The run goes in chunks "
             "kept in FILE.chunks/ until FILE is written, so an interrupted run continues "
             "where it stopped when rerun with the same arguments.", 80
         ),
-        epilog=f"systems:\n{_listing(SYSTEMS)}\n{_listing(_USER_SYSTEM)}\n\nmethods:\n"
+        epilog=f"systems:\n{_listing(_system_listing())}\n{_listing(_USER_SYSTEM)}\n\nmethods:\n"
         + _listing({name: f"{method.name} ({method.description})" for name, method in METHODS.items()}),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -367,8 +371,16 @@ def main(argv=None) -> int:
         "--chunk-steps", type=int, metavar="N",
         help="steps per chunk written to FILE.chunks/, a multiple of K (default about 50 000)",
     )
-    simulate.add_argument("--seed", type=int, metavar="S", help="random initial state of this seed (gearbox, quartic)")
-    simulate.add_argument("--angle", type=float, metavar="A", help=f"quartic only: the initial state of angle A (default {_DEFAULT_ANGLE})")
+    simulate.add_argument(
+        "--start", type=_start_choice, action="append", default=[], metavar="NAME=VALUE",
+        help="start from the example's initial state with NAME = VALUE instead of its default, for "
+        "instance --start angle=0.9 for the quartic (repeat for several; each system's names are "
+        "listed below)",
+    )
+    simulate.add_argument(
+        "--seed", type=int, metavar="S",
+        help=f"a random initial state of this seed ({', '.join(_random_systems())})",
+    )
     simulate.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True, help="show a progress bar (default on)")
 
     reproduce = commands.add_parser(
@@ -494,15 +506,60 @@ def _checked_steps(parser, arguments) -> int:
             _composed(METHODS[arguments.method].solver, arguments.order)
         except ValueError as error:
             parser.error(f"argument --order: {error}")
-    if arguments.seed is not None and arguments.system not in ("gearbox", "quartic"):
-        parser.error(f"--seed needs a system with random initial states (gearbox, quartic), not {arguments.system}")
-    if arguments.seed is not None and arguments.seed < 0:
-        parser.error(f"--seed must be a non-negative integer, got {arguments.seed}")
-    if arguments.angle is not None and arguments.system != "quartic":
-        parser.error(f"--angle is for the quartic, not {arguments.system}")
-    if arguments.angle is not None and arguments.seed is not None:
-        parser.error("give --angle or --seed for the quartic, not both")
+    _check_start(parser, arguments)
     return n_steps
+
+
+def _random_systems() -> list[str]:
+    return [name for name, example in EXAMPLES.items() if example().has_random_states()]
+
+
+def _start_choice(text: str) -> tuple[str, int | float]:
+    """NAME=VALUE, VALUE an integer where it is written as one (a seed), a float otherwise."""
+    name, equals, value = text.partition("=")
+    try:
+        if not (equals and name):
+            raise ValueError
+        try:
+            return name, int(value)
+        except ValueError:
+            return name, float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with a number VALUE, got {text!r}") from None
+
+
+def _check_start(parser, arguments) -> None:
+    """--start and --seed against the example (a user's factory gives its own start)."""
+    if _is_factory(arguments.system):
+        if arguments.start or arguments.seed is not None:
+            parser.error("--start and --seed are for the built-in systems; a factory returns its own start")
+        if integrates_adapted(METHODS[arguments.method].solver):
+            parser.error(
+                f"argument --method: {arguments.method} integrates reduced equations in adapted "
+                "coordinates (a SkewGradientSystem); a factory's system is a NonholonomicSystem"
+            )
+        return
+    example = EXAMPLES[arguments.system]()
+    form = _form(arguments)
+    if form not in example.forms():
+        parser.error(
+            f"argument --method: {arguments.method} integrates the {form} form, and the "
+            f"{arguments.system} example comes in {', '.join(example.forms())} form only"
+        )
+    choices = example.initial_state_choices()
+    for name, _ in arguments.start:
+        if name not in choices:
+            parser.error(
+                f"argument --start: the {arguments.system} example's initial state takes "
+                f"{', '.join(choices) or 'no names'}, not {name!r}"
+            )
+    if arguments.seed is not None:
+        if not example.has_random_states():
+            parser.error(f"--seed needs a system with random initial states ({', '.join(_random_systems())}), not {arguments.system}")
+        if arguments.seed < 0:
+            parser.error(f"--seed must be a non-negative integer, got {arguments.seed}")
+        if arguments.start:
+            parser.error("give --start or --seed, not both")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,9 @@
 """The methods by name, one registry for the command line, the experiments and the
-tests: each with the paper's name, the form of the system it integrates, and what it
-keeps to roundoff."""
+tests: each with the paper's name and a colour for the figures. What a method keeps, its
+order, whether it is symmetric and the form of the system it integrates are the method's
+own to say (`keeps_energy()`, `keeps_constraint()`, `order(terms)`, `is_symmetric()`,
+`term_structure`); for the diffrax solvers beside them, which keep nothing, the functions
+here answer."""
 
 import functools
 from collections.abc import Callable
@@ -10,80 +13,92 @@ import diffrax
 
 from ._discrete_gradient import avf, gonzalez
 from ._solver import DiscreteGradient, GonzalezF, GonzalezR, IDLA, Projection, SIDLA, SPARK
+from ._system import SkewGradientSystem
+
+
+# For a method registered without a colour of its own.
+DEFAULT_COLOUR = "0.4"
+
+
+def integrates_adapted(solver: diffrax.AbstractSolver) -> bool:
+    """Whether `solver` integrates an example's reduced equations in adapted coordinates
+    (a `SkewGradientSystem`) rather than a `NonholonomicSystem` in canonical ones."""
+    return getattr(solver, "term_structure", None) is SkewGradientSystem
+
+
+def keeps_energy(solver: diffrax.AbstractSolver) -> bool:
+    return getattr(solver, "keeps_energy", lambda: False)()
+
+
+def keeps_constraint(solver: diffrax.AbstractSolver) -> bool:
+    return getattr(solver, "keeps_constraint", lambda: False)()
+
+
+def is_symmetric(solver: diffrax.AbstractSolver) -> bool:
+    """Whether `solver` is its own adjoint; the explicit Runge-Kutta methods are not."""
+    return getattr(solver, "is_symmetric", lambda: False)()
+
+
+def description(solver: diffrax.AbstractSolver) -> str:
+    """A line on what `solver` is, its order and what it keeps, from the solver itself."""
+    summary = getattr(solver, "summary", None)
+    summary = summary() if summary else f"{type(solver).__name__} (diffrax) at fixed steps on the index-1 ODE"
+    order = solver.order(None)
+    energy, constraint = keeps_energy(solver), keeps_constraint(solver)
+    if energy and constraint:
+        kept = (
+            "energy to roundoff, the constraint by construction"
+            if integrates_adapted(solver)
+            else "energy and constraint to roundoff"
+        )
+    elif energy:
+        kept = "energy to roundoff, the constraint not"
+    elif constraint:
+        kept = f"constraint to roundoff, energy O(h^{order})"
+    else:
+        kept = "neither energy nor constraint"
+    symmetric = "symmetric" if is_symmetric(solver) else "not symmetric"
+    return f"{summary}: order {order}, {symmetric}, {kept}"
 
 
 class Method(NamedTuple):
-    """A method as the paper names it (`name`). `adapted`: it integrates an example's
-    reduced equations in adapted coordinates (a `SkewGradientSystem`), not the
-    canonical `NonholonomicSystem`. `keeps_energy`, `keeps_constraint`: to roundoff, at
-    every step. `description`: one line on what it is and what it keeps. `solver` makes
-    the method with its defaults (when it is asked for, so that nothing is built before
-    the caller has chosen its dtype)."""
+    """A method as the paper names it (`name`), made with its defaults by `make` (when
+    it is asked for, so that nothing is built before the caller has chosen its dtype),
+    and drawn in `colour`."""
 
     name: str
     make: Callable[[], diffrax.AbstractSolver]
-    adapted: bool
-    keeps_energy: bool
-    keeps_constraint: bool
-    description: str
+    colour: str = DEFAULT_COLOUR
 
     @property
     def solver(self) -> diffrax.AbstractSolver:
         return self.make()
 
+    @property
+    def adapted(self) -> bool:
+        return integrates_adapted(self.solver)
+
+    @property
+    def keeps_energy(self) -> bool:
+        return keeps_energy(self.solver)
+
+    @property
+    def keeps_constraint(self) -> bool:
+        return keeps_constraint(self.solver)
+
+    @property
+    def description(self) -> str:
+        return description(self.solver)
+
 
 METHODS = {
-    "gonzalez-r": Method(
-        "GONZALEZ-R", GonzalezR,
-        adapted=False, keeps_energy=True, keeps_constraint=True,
-        description="§3.3, the discrete gradient on the reduced system in canonical coordinates: "
-        "energy and constraint to roundoff",
-    ),
-    "gonzalez-f": Method(
-        "GONZALEZ-F", GonzalezF,
-        adapted=False, keeps_energy=True, keeps_constraint=False,
-        description="§3.3, the direct method in canonical coordinates: energy to roundoff, the constraint not",
-    ),
-    "sidla": Method(
-        "SI-DLA", SIDLA,
-        adapted=False, keeps_energy=False, keeps_constraint=True,
-        description="McLachlan & Perlmutter's semi-implicit DLA in canonical coordinates: constraint to "
-        "roundoff, energy O(h^2)",
-    ),
-    "idla": Method(
-        "I-DLA", IDLA,
-        adapted=False, keeps_energy=False, keeps_constraint=True,
-        description="the implicit DLA with the midpoint discrete Lagrangian and the constraint impulses at "
-        "the step's ends, in canonical coordinates: constraint to roundoff, energy O(h^2)",
-    ),
-    "spark": Method(
-        "SPARK", SPARK,
-        adapted=False, keeps_energy=False, keeps_constraint=True,
-        description="2-stage Lobatto SPARK (Jay's IIIA-B-C-C*-D family: IIIA for the velocity, IIIB for "
-        "every force, the constraint force included) in canonical coordinates: constraint to roundoff, "
-        "energy O(h^2)",
-    ),
-    "avf": Method(
-        "AVF", functools.partial(DiscreteGradient, discrete_gradient=avf),
-        adapted=True, keeps_energy=True, keeps_constraint=True,
-        description="DiscreteGradient(avf) on the reduced equations in adapted coordinates: energy to "
-        "roundoff, the constraint by construction",
-    ),
-    "gonzalez": Method(
-        "GONZALEZ", functools.partial(DiscreteGradient, discrete_gradient=gonzalez),
-        adapted=True, keeps_energy=True, keeps_constraint=True,
-        description="DiscreteGradient(gonzalez) on the reduced equations in adapted coordinates: energy to "
-        "roundoff, the constraint by construction",
-    ),
-    "dopri8-projection": Method(
-        "Dopri8 + projection", lambda: Projection(diffrax.Dopri8()),
-        adapted=False, keeps_energy=True, keeps_constraint=True,
-        description="Dopri8 at fixed steps on the index-1 ODE, each step's end projected onto the energy "
-        "level and the constraint: order 8, energy and constraint to roundoff, not symmetric",
-    ),
-    "tsit5": Method(
-        "Tsit5", diffrax.Tsit5,
-        adapted=False, keeps_energy=False, keeps_constraint=False,
-        description="Tsit5 at fixed steps on the index-1 ODE: the non-geometric baseline",
-    ),
+    "gonzalez-r": Method("GONZALEZ-R", GonzalezR, "C0"),
+    "gonzalez-f": Method("GONZALEZ-F", GonzalezF, "C1"),
+    "sidla": Method("SI-DLA", SIDLA, "C2"),
+    "idla": Method("I-DLA", IDLA, "C3"),
+    "spark": Method("SPARK", SPARK, "C4"),
+    "avf": Method("AVF", functools.partial(DiscreteGradient, discrete_gradient=avf), "C5"),
+    "gonzalez": Method("GONZALEZ", functools.partial(DiscreteGradient, discrete_gradient=gonzalez), "C6"),
+    "dopri8-projection": Method("Dopri8 + projection", lambda: Projection(diffrax.Dopri8()), "olive"),
+    "tsit5": Method("Tsit5", diffrax.Tsit5, "C7"),
 }

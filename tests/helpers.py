@@ -27,25 +27,25 @@ KEEPS_CONSTRAINT = {name for name in CANONICAL_METHODS if REGISTRY[name].keeps_c
 FULL_OPTIMISATION = {"xla_backend_optimization_level": "2"}
 
 
+# The examples the shared properties are tested on in canonical coordinates, by the
+# catalogue's names (`nhjax.examples.EXAMPLES`), each with a label that says what it
+# covers (constant and q-dependent metrics, one and two constraints) and the choices of
+# its start (`AbstractExample.start`).
+CANONICAL_CASES = {
+    "gearbox, M = I": ("gearbox", {}),
+    "quartic, n = 7": ("quartic", dict(angle=0.9)),
+    "sleigh, q-dependent M": ("sleigh", dict(x1=0.0, rho1=0.3)),
+    "disk, k = 2": ("disk", dict(theta=0.2)),
+}
+
+
 def canonical_starts():
-    """Starts on the paper's systems in canonical coordinates, by name: constant and
-    q-dependent metrics, one and two constraints."""
-    gearbox = nh.examples.gearbox()
-    quartic = nh.examples.chaotic_quartic()
-    sleigh = nh.examples.chaplygin_sleigh()
-    disk = nh.examples.rolling_disk()
-    return {
-        "gearbox, M = I": (gearbox, gearbox.random_initial_state(jax.random.key(0))),
-        "quartic, n = 7": (quartic, quartic.from_adapted(quartic.initial_state(0.9))),
-        "sleigh, q-dependent M": (
-            sleigh,
-            sleigh.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), sleigh.args),
-        ),
-        "disk, k = 2": (
-            disk,
-            disk.from_adapted(disk.initial_state(theta=0.2, rho1=1.0, rho2=0.5), disk.args),
-        ),
-    }
+    """The examples of `CANONICAL_CASES` with their starts (q, p), by label."""
+    starts = {}
+    for label, (name, choices) in CANONICAL_CASES.items():
+        example = nh.examples.EXAMPLES[name]()
+        starts[label] = (example, example.start("canonical", **choices))
+    return starts
 
 
 def fitted_order(step_sizes, errors) -> float:

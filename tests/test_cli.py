@@ -185,7 +185,7 @@ def test_an_interrupt_while_the_package_imports_ends_the_command_cleanly(tmp_pat
 def test_simulate_help_names_every_option_system_and_method():
     out = _run("simulate", "--help")
     assert out.returncode == 0
-    for name in ("--method", "--dt", "--t1", "--save-every", "--out", "--chunk-steps", "--seed", "--angle", "--no-progress"):
+    for name in ("--method", "--dt", "--t1", "--save-every", "--out", "--chunk-steps", "--seed", "--start", "--no-progress"):
         assert name in out.stdout, name
     for name in (*SYSTEMS, *METHODS):
         assert f"\n  {name}" in out.stdout, name
@@ -201,7 +201,7 @@ def test_simulate_composes_to_higher_order(tmp_path):
         out = tmp_path / f"disk-{order}.npz"
         run = _run(
             "simulate", "disk", "--method", "gonzalez-r", "--order", order, "--dt", "0.25", "--t1", "5",
-            "--no-progress", "--out", str(out),
+            "--start", "rho1=1.3", "--start", "rho2=0.9", "--no-progress", "--out", str(out),
         )
         assert run.returncode == 0, run.stderr
         with np.load(out) as saved:
@@ -220,7 +220,7 @@ def test_simulate_with_the_projected_dopri8(tmp_path, capsys):
     at Dopri8's accuracy; it does not compose."""
     out = tmp_path / "disk.npz"
     code = main(["simulate", "disk", "--method", "dopri8-projection", "--dt", "0.25", "--t1", "5",
-                 "--no-progress", "--out", str(out)])
+                 "--start", "rho1=1.3", "--start", "rho2=0.9", "--no-progress", "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     disk = nh.examples.rolling_disk()
     exact = disk.from_adapted(disk.exact_solution(5.0, disk.initial_state(rho1=1.3, rho2=0.9)))[0]
@@ -231,6 +231,38 @@ def test_simulate_with_the_projected_dopri8(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit:
         main(["simulate", "disk", "--method", "dopri8-projection", "--order", "4", "--dt", "0.25", "--t1", "5"])
     assert exit.value.code == 2 and "not symmetric" in capsys.readouterr().err
+
+
+def test_every_example_runs_from_the_command_line(tmp_path, capsys):
+    """Each example of the catalogue, from its usual start, with SI-DLA in canonical
+    coordinates where it has them and GONZALEZ on its reduced equations otherwise: the
+    trajectory written in that form, the energy of the saved states the example's own."""
+    for name, example in nh.examples.EXAMPLES.items():
+        example = example()
+        method, form = ("sidla", "canonical") if "canonical" in example.forms() else ("gonzalez", "adapted")
+        out = tmp_path / f"{name}.npz"
+        code = main(["simulate", name, "--method", method, "--dt", "0.1", "--t1", "0.3", "--no-progress", "--out", str(out)])
+        assert code == 0, capsys.readouterr().err
+        assert f"{name}" in capsys.readouterr().out
+        with np.load(out) as saved:
+            states = (saved["q"], saved["p"]) if form == "canonical" else saved["x"]
+            energy = saved["energy"]
+        start = jax.tree.map(lambda y: y[0], states)
+        np.testing.assert_allclose(start, example.start(form), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(energy[0], example.system(form).energy(start, example.args), rtol=1e-14)
+        assert energy.shape == (4,) and np.all(np.isfinite(energy))
+
+
+def test_a_method_needs_the_form_it_integrates(tmp_path, capsys):
+    base = ["--dt", "0.1", "--t1", "1", "--out", str(tmp_path / "x.npz")]
+    with pytest.raises(SystemExit) as exit:
+        main(["simulate", "suslov", "--method", "gonzalez-r", *base])
+    assert exit.value.code == 2
+    assert "gonzalez-r integrates the canonical form, and the suslov example comes in adapted form only" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit:
+        main(["simulate", "gearbox", "--method", "avf", *base])
+    assert exit.value.code == 2
+    assert "avf integrates the adapted form, and the gearbox example comes in canonical, lagrangian" in capsys.readouterr().err
 
 
 def test_unknown_system_or_method_lists_the_valid_ones():
@@ -253,7 +285,9 @@ def test_bad_simulate_numbers_give_a_message_and_nonzero_exit(capsys):
         (["--dt", "0.1", "--t1", "1", "--save-every", "3"], "divisor of the number of steps t1/h = 10, got 3"),
         (["--dt", "0.1", "--t1", "1", "--save-every", "2", "--chunk-steps", "5"], "multiple of --save-every 2, got 5"),
         (["--dt", "0.1", "--t1", "1", "--seed", "3"], "--seed needs a system with random initial states"),
-        (["--dt", "0.1", "--t1", "1", "--angle", "0.2"], "--angle is for the quartic"),
+        (["--dt", "0.1", "--t1", "1", "--start", "angle=0.2"], "initial state takes x1, x2, theta, rho1, rho2, not 'angle'"),
+        (["--dt", "0.1", "--t1", "1", "--start", "rho1"], "expected NAME=VALUE with a number VALUE, got 'rho1'"),
+        (["--dt", "0.1", "--t1", "1", "--start", "rho1=0.1", "--seed", "1"], "--seed needs a system with random"),
         (["--dt", "0.1", "--t1", "1", "--order", "3"], "invalid choice: 3"),
     ]:
         with pytest.raises(SystemExit) as exit:

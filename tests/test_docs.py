@@ -18,6 +18,16 @@ def test_the_site_builds_strictly(tmp_path):
     methods = (tmp_path / "site" / "methods" / "index.html").read_text()
     for name in ("GonzalezR", "GonzalezF", "SIDLA", "IDLA", "SPARK", "Composition", "DiscreteGradient"):
         assert f'id="nhjax.{name}"' in methods, name
+    # The tables of methods and examples are read from the registry and the catalogue.
+    from nhjax._methods import METHODS
+    from nhjax.examples import EXAMPLES
+
+    for name in METHODS:
+        assert f"<code>{name}</code>" in methods, name
+    systems = (tmp_path / "site" / "systems" / "index.html").read_text()
+    for name in EXAMPLES:
+        assert f"<code>{name}</code>" in systems, name
+    assert "hooks" not in {path.name for path in (tmp_path / "site").iterdir()}
     assert (tmp_path / "site" / "notebooks" / "sleigh_parameter_identification" / "index.html").exists()
     reproduction = (tmp_path / "site" / "reproduction" / "report" / "index.html").read_text()
     assert "fig1.png" in reproduction and "Mode: full" in reproduction

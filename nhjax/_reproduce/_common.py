@@ -2,6 +2,7 @@
 its two forms, compiled runs to a final time, fits, thresholds and figure output."""
 
 import dataclasses
+import functools
 import math
 import pathlib
 import statistics
@@ -18,40 +19,19 @@ from matplotlib.figure import Figure
 
 import nhjax as nh
 
-from .._methods import METHODS as REGISTRY
+from .._methods import Method, METHODS as REGISTRY
 from ._sizes import Sizes
 
 
-@dataclasses.dataclass(frozen=True)
-class Method:
-    """A method as the paper names it. `adapted`: it integrates an example's reduced
-    equations in adapted coordinates (a `SkewGradientSystem`), not the canonical
-    `NonholonomicSystem`."""
-
-    solver: diffrax.AbstractSolver
-    adapted: bool
-    colour: str
-    description: str
-
-
-_COLOURS = {
-    "GONZALEZ-R": "C0", "GONZALEZ-F": "C1", "SI-DLA": "C2", "I-DLA": "C3", "SPARK": "C4",
-    "AVF": "C5", "GONZALEZ": "C6", "Tsit5": "C7", "Dopri8 + projection": "olive",
-}
-METHODS = {
-    method.name: Method(method.solver, method.adapted, _COLOURS[method.name], method.description)
-    for method in REGISTRY.values()
-}
-# Beyond the paper: the symmetric compositions (`nhjax.Composition`) of GONZALEZ-R and of
-# GONZALEZ on the reduced form, by name, with their orders.
+# The paper's methods by name (`nhjax._methods.METHODS`), and beyond the paper the
+# symmetric compositions (`nhjax.Composition`) of GONZALEZ-R and of GONZALEZ on the
+# reduced form, by name, with their orders and colours of their own.
+METHODS = {method.name: method for method in REGISTRY.values()}
 _COMPOSITION_COLOURS = {"GONZALEZ-R": ("navy", "teal", "purple"), "GONZALEZ": ("C8", "C9", "k")}
 COMPOSITIONS = {f"{name} order {order}": order for name in _COMPOSITION_COLOURS for order in (4, 6, 8)}
 METHODS.update({
     f"{name} order {order}": Method(
-        nh.Composition(METHODS[name].solver, order),
-        METHODS[name].adapted,
-        colour,
-        f"{METHODS[name].description}, composed to order {order} (nhjax.Composition)",
+        f"{name} order {order}", functools.partial(nh.Composition, METHODS[name].solver, order), colour
     )
     for name, colours in _COMPOSITION_COLOURS.items()
     for order, colour in zip((4, 6, 8), colours)
@@ -61,7 +41,7 @@ DISCRETE_GRADIENT_METHODS = tuple(
     method.name for method in REGISTRY.values() if method.keeps_energy and isinstance(method.solver, nh.AbstractMethod)
 )
 # Every method whose energy is exact to roundoff.
-ENERGY_EXACT_METHODS = tuple(method.name for method in REGISTRY.values() if method.keeps_energy) + tuple(COMPOSITIONS)
+ENERGY_EXACT_METHODS = tuple(name for name, method in METHODS.items() if method.keeps_energy)
 EPS = float(np.finfo(np.float64).eps)
 # Enough for the runs to t = 10; a constant, so that it never causes a recompilation.
 _MAX_STEPS = 1_000_000

@@ -85,8 +85,8 @@ def plot(path, runs) -> str:
 def run(context: Context) -> dict:
     sizes = context.sizes
     oscillator = nh.examples.contact_oscillator(epsilon=EPSILON)
-    q0, p0 = oscillator.initial_state()
-    adapted0 = oscillator.to_adapted(q0, p0)
+    adapted0 = oscillator.initial_state()
+    q0, p0 = oscillator.from_adapted(adapted0)
     systems = dict(
         adapted=(oscillator.adapted, adapted0),
         **{"gauge-shifted": (oscillator.gauge_shifted, oscillator.to_gauge_shifted(adapted0))},

@@ -291,6 +291,19 @@ class AbstractMethod(diffrax.AbstractSolver):
     def _root_finder(self, dtype) -> optx.AbstractRootFinder:
         return default_root_finder(dtype) if self.root_finder is None else self.root_finder
 
+    def keeps_energy(self) -> bool:
+        """Whether every step keeps the energy $H$ to roundoff."""
+        raise NotImplementedError
+
+    def keeps_constraint(self) -> bool:
+        """Whether every step keeps the constraint to roundoff."""
+        raise NotImplementedError
+
+    def summary(self) -> str:
+        """What the method is, in a line (the command line's and the reproduction's
+        description of it adds its order and what it keeps)."""
+        return type(self).__name__
+
     def is_symmetric(self) -> bool:
         r"""Whether the method is its own adjoint, $\Phi_{-h} = \Phi_h^{-1}$ (time-symmetric),
         as `nhjax.Composition` requires of the methods it composes. `False` unless a

@@ -265,6 +265,18 @@ class Composition(diffrax.AbstractSolver):
         method_order = self.method.order(terms)
         return None if method_order is None else max(self.scheme_order, method_order)
 
+    def keeps_energy(self) -> bool:
+        return self.method.keeps_energy()
+
+    def keeps_constraint(self) -> bool:
+        return self.method.keeps_constraint()
+
+    def is_symmetric(self) -> bool:
+        return True
+
+    def summary(self) -> str:
+        return f"{self.method.summary()}, composed to order {self.scheme_order} (nhjax.Composition)"
+
     def _symmetric_method(self) -> tuple[AbstractMethod, AbstractMethod | None]:
         """The method and, where it is not symmetric, its adjoint."""
         if self.method.is_symmetric():

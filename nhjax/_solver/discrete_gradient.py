@@ -86,6 +86,17 @@ class DiscreteGradient(AbstractMethod):
             _underlying(self.discrete_gradient)
         )
 
+    def keeps_energy(self) -> bool:
+        return True
+
+    def keeps_constraint(self) -> bool:
+        """In adapted coordinates the constraint holds by construction."""
+        return True
+
+    def summary(self) -> str:
+        name = getattr(_underlying(self.discrete_gradient), "__name__", "a user's discrete gradient")
+        return f"DiscreteGradient({name}) on the reduced equations in adapted coordinates"
+
     def is_symmetric(self) -> bool:
         r"""True for the symmetric discrete gradients (`nhjax.avf`, `nhjax.gonzalez`,
         $\bar\nabla H(x', x) = \bar\nabla H(x, x')$) with a symmetric $\tilde\Pi$

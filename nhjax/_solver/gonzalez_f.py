@@ -50,6 +50,15 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
 
     term_structure: ClassVar = NonholonomicSystem
 
+    def keeps_energy(self) -> bool:
+        return True
+
+    def keeps_constraint(self) -> bool:
+        return False
+
+    def summary(self) -> str:
+        return '§3.3, the direct method in canonical coordinates'
+
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
 

@@ -143,6 +143,15 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
 
     term_structure: ClassVar = NonholonomicSystem
 
+    def keeps_energy(self) -> bool:
+        return True
+
+    def keeps_constraint(self) -> bool:
+        return True
+
+    def summary(self) -> str:
+        return '§3.3, the discrete gradient on the reduced system in canonical coordinates'
+
     derivative: Derivative = "autodiff"
     difference_step: float | None = None
     root_finder: optx.AbstractRootFinder | None = None

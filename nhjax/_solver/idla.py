@@ -125,6 +125,15 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
 
     term_structure: ClassVar = NonholonomicSystem
 
+    def keeps_energy(self) -> bool:
+        return False
+
+    def keeps_constraint(self) -> bool:
+        return True
+
+    def summary(self) -> str:
+        return "the implicit DLA with the midpoint discrete Lagrangian and the constraint impulses at the step's ends, in canonical coordinates"
+
     constraint_force: Literal["endpoints", "midpoint"] = "endpoints"
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20

@@ -171,6 +171,23 @@ class Projection(diffrax.AbstractWrappedSolver):
     def order(self, terms):
         return self.solver.order(terms)
 
+    def keeps_energy(self) -> bool:
+        return True
+
+    def keeps_constraint(self) -> bool:
+        return True
+
+    def is_symmetric(self) -> bool:
+        """The projection of a step's end is not the step's start's: never symmetric
+        (GNI §V.4.1), whatever the solver."""
+        return False
+
+    def summary(self) -> str:
+        return (
+            f"{type(self.solver).__name__} at fixed steps on the index-1 ODE, each step's end projected "
+            "onto the energy level and the constraint"
+        )
+
     def error_order(self, terms):
         return self.solver.error_order(terms)
 

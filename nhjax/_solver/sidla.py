@@ -92,6 +92,15 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
 
     term_structure: ClassVar = NonholonomicSystem
 
+    def keeps_energy(self) -> bool:
+        return False
+
+    def keeps_constraint(self) -> bool:
+        return True
+
+    def summary(self) -> str:
+        return "McLachlan & Perlmutter's semi-implicit DLA in canonical coordinates"
+
     constant_metric: bool | None = eqx.field(default=None, static=True)
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20

@@ -127,6 +127,15 @@ class SPARK(AbstractMethod):
 
     term_structure: ClassVar = NonholonomicSystem
 
+    def keeps_energy(self) -> bool:
+        return False
+
+    def keeps_constraint(self) -> bool:
+        return True
+
+    def summary(self) -> str:
+        return "2-stage Lobatto SPARK (Jay's IIIA-B-C-C*-D family: IIIA for the velocity, IIIB for every force, the constraint force included) in canonical coordinates"
+
     tableau: SPARKTableau = LOBATTO_IIIA_B_2
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20

@@ -1,10 +1,11 @@
-"""The paper's systems: each example bundles its parameters (`.args`), its reduced
-equations in adapted coordinates (`.adapted`, a `SkewGradientSystem`), its constraint
-matrix and frame, maps between (q, p) and adapted coordinates, and initial-state
-helpers. Beside them Euler's disk (`rolling_disk_3d`), a system as a mechanician
-derives it, given only in canonical and Lagrangian form."""
+"""The systems nhjax ships, each an `AbstractExample`: its parameters (`.args`), the forms
+it comes in (canonical, from its Lagrangian, reduced in adapted coordinates), maps
+between them and initial states in one convention. `EXAMPLES` is the catalogue, by the
+names the command line uses: the paper's systems and Euler's disk (`rolling_disk_3d`),
+a system as a mechanician derives it."""
 
 from .._adapted import discrete_constraint_residual as discrete_constraint_residual
+from ._example import AbstractExample as AbstractExample
 from ._chaotic_quartic import chaotic_quartic as chaotic_quartic, ChaoticQuartic as ChaoticQuartic
 from ._contact_oscillator import contact_oscillator as contact_oscillator, ContactOscillator as ContactOscillator
 from ._chaplygin_sleigh import chaplygin_sleigh as chaplygin_sleigh, ChaplyginSleigh as ChaplyginSleigh
@@ -12,3 +13,9 @@ from ._rolling_disk import rolling_disk as rolling_disk, RollingDisk as RollingD
 from ._rolling_disk_3d import rolling_disk_3d as rolling_disk_3d, RollingDisk3D as RollingDisk3D
 from ._suslov import suslov as suslov, Suslov as Suslov
 from ._gearbox import gearbox as gearbox, Gearbox as Gearbox
+
+# Every example by its name; each is made with its default parameters by calling its class.
+EXAMPLES: dict[str, type[AbstractExample]] = {
+    example.name: example
+    for example in (Gearbox, ChaoticQuartic, ChaplyginSleigh, RollingDisk, Suslov, ContactOscillator, RollingDisk3D)
+}

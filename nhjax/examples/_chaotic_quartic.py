@@ -12,6 +12,8 @@ $\nabla\mathcal{H}$ comes from autodiff: the gradient printed in (fcseq) writes 
 for $w_i$ in its $z$ rows.
 """
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -20,6 +22,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from ._example import AbstractExample
 
 
 def _split(q):
@@ -92,19 +95,18 @@ def _constraints(q, args=None):
     return jnp.concatenate([jnp.ones((1,), q.dtype), jnp.zeros((n,), q.dtype), w])[None, :]
 
 
-class ChaoticQuartic(eqx.Module):
+class ChaoticQuartic(AbstractExample):
     """The chaotic quartic system with `n` pairs $(w_i, z_i)$; no parameters
     (`args` is `None`)."""
 
     n: int = eqx.field(default=3, static=True)
 
+    name: ClassVar[str] = "quartic"
+    title: ClassVar[str] = "the chaotic quartic of §4.1 (Figures 1 and 4), n = 3: states of H = 3.06 by an angle"
+
     def __check_init__(self):
         if not isinstance(self.n, int) or self.n < 1:
             raise ValueError(f"The chaotic quartic needs an integer n >= 1, got {self.n!r}.")
-
-    @property
-    def args(self) -> None:
-        return None
 
     @property
     def adapted(self) -> SkewGradientSystem:
@@ -141,7 +143,7 @@ class ChaoticQuartic(eqx.Module):
         q = x[: 2 * self.n + 1]
         return q, adapted_to_momentum(_frame(q), jnp.eye(q.shape[0], dtype=q.dtype), x[2 * self.n + 1 :])
 
-    def initial_state(self, angle, dtype=None) -> Float[Array, " 4n+1"]:
+    def initial_state(self, angle=0.7, dtype=None) -> Float[Array, " 4n+1"]:
         r"""The paper's one-parameter family of states with $H = 3.06$ (n = 3 only):
         $q_0 = (\cos t, 0.6, 0.4, 0.2, 1, 1, 1)$, $\dot q_0 = (0, \sin t, 0, \dots, 0)$,
         which satisfies the constraint for every angle $t$."""
@@ -161,6 +163,10 @@ class ChaoticQuartic(eqx.Module):
         """`count` states with H = 3.06 from uniformly random angles (`initial_state`)."""
         angles = jax.random.uniform(key, (count,), maxval=2 * jnp.pi, dtype=dtype)
         return jax.vmap(lambda angle: self.initial_state(angle, dtype))(angles)
+
+    def random_initial_state(self, key: PRNGKeyArray, dtype=None) -> Float[Array, " 4n+1"]:
+        """One state of `random_initial_states`."""
+        return self.random_initial_states(key, 1, dtype)[0]
 
 
 def chaotic_quartic(n: int = 3) -> ChaoticQuartic:

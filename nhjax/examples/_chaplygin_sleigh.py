@@ -14,13 +14,15 @@ $(x_1, x_2, \theta, \rho_1, \rho_2)$, $\mathcal{H} = \tfrac12(\rho_1^2 + \rho_2^
 structure $\Pi(\theta, \rho_1)$ printed in §4.2, with $C^1_{12} = a\sqrt{m}/(J + ma^2)$.
 """
 
-import equinox as eqx
+from typing import ClassVar
+
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from ._example import AbstractExample
 from ._parameters import parameters, require_finite, require_positive
 
 
@@ -97,7 +99,7 @@ def _constraints(q, args):
     return jnp.stack([-jnp.sin(theta), jnp.cos(theta), jnp.zeros_like(theta)])[None, :]
 
 
-class ChaplyginSleigh(eqx.Module):
+class ChaplyginSleigh(AbstractExample):
     """The Chaplygin sleigh with moment of inertia `J` about the centre of mass, mass
     `m`, and distance `a` from the blade's contact point to the centre of mass.
     `args` holds the parameters for the system's functions."""
@@ -106,13 +108,12 @@ class ChaplyginSleigh(eqx.Module):
     a: float = 1.0
     m: float = 1.0
 
+    name: ClassVar[str] = "sleigh"
+    title: ClassVar[str] = "the Chaplygin sleigh of §4.2 (Figure 2), from Figure 2's start next to the unstable equilibrium"
+
     def __check_init__(self):
         require_positive(_NAME, J=self.J, m=self.m)
         require_finite(_NAME, a=self.a)
-
-    @property
-    def args(self) -> dict[str, float]:
-        return dict(J=self.J, a=self.a, m=self.m)
 
     @property
     def adapted(self) -> SkewGradientSystem:

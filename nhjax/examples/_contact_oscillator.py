@@ -1,6 +1,8 @@
 r"""The nonlinear contact oscillator of McLachlan & Perlmutter (J. Nonlinear Sci. 16, 2006,
 §5.2), reversible and gauge-shifted (see `ContactOscillator`)."""
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -10,6 +12,7 @@ from .._adapted import adapted_to_momentum, momentum_to_adapted
 from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from ._chaotic_quartic import _constraints, _frame, _structure
+from ._example import AbstractExample
 
 
 def _potential(q, epsilon):
@@ -72,7 +75,7 @@ def _shifted(state, gauge):
     return jnp.concatenate([q, rho - _shift(q, gauge)])
 
 
-class ContactOscillator(eqx.Module):
+class ContactOscillator(AbstractExample):
     r"""The nonlinear contact oscillator of McLachlan & Perlmutter (J. Nonlinear Sci. 16, 2006,
     §5.2), in its usual reversible form and in a gauge-shifted form that is integrable but
     not reversible with respect to the standard reversibility map (Modin & Verdier, "What
@@ -113,9 +116,11 @@ class ContactOscillator(eqx.Module):
     epsilon: float = eqx.field(default=0.5, static=True)
     gauge: float = eqx.field(default=1.0, static=True)
 
-    @property
-    def args(self) -> None:
-        return None
+    name: ClassVar[str] = "contact-oscillator"
+    title: ClassVar[str] = (
+        "McLachlan & Perlmutter's nonlinear contact oscillator (Figure 5), with a second first "
+        "integral H_y that reversible methods keep near its value"
+    )
 
     @property
     def canonical(self) -> NonholonomicSystem:
@@ -135,10 +140,10 @@ class ContactOscillator(eqx.Module):
         $\tilde\rho \mapsto -\tilde\rho$."""
         return SkewGradientSystem(_AdaptedHamiltonian(self.epsilon, self.gauge), _ShiftedStructure(self.gauge))
 
-    def to_adapted(self, q, p) -> Float[Array, "5"]:
+    def to_adapted(self, q, p, args=None) -> Float[Array, "5"]:
         return jnp.concatenate([q, momentum_to_adapted(_frame(q), p)])
 
-    def from_adapted(self, state) -> tuple[Array, Array]:
+    def from_adapted(self, state, args=None) -> tuple[Array, Array]:
         q = state[:3]
         return q, adapted_to_momentum(_frame(q), jnp.eye(3, dtype=q.dtype), state[3:])
 
@@ -155,8 +160,8 @@ class ContactOscillator(eqx.Module):
         axes allowed): $\dot y = \rho_1 = \tilde\rho_1$."""
         return 0.5 * (state[..., 1] ** 2 + state[..., 3] ** 2)
 
-    def initial_state(self, z0=0.5, z_velocity=0.3, energy=1.5, y_energy=0.5, dtype=None) -> tuple[Array, Array]:
-        r"""$(q, p)$ with $y(t) = \sqrt{2H_y}\cos t$: $y_0 = \sqrt{2H_y}$, $\dot y_0 = 0$,
+    def initial_state(self, z0=0.5, z_velocity=0.3, energy=1.5, y_energy=0.5, dtype=None) -> Float[Array, "5"]:
+        r"""The adapted state $(q, \rho)$ with $y(t) = \sqrt{2H_y}\cos t$: $y_0 = \sqrt{2H_y}$, $\dot y_0 = 0$,
         $z_0$, $\dot z_0$ as given, $\dot x_0 = -y_0\dot z_0$ (the constraint), and
         $x_0 > 0$ from the energy."""
         y0 = jnp.sqrt(2 * jnp.asarray(y_energy, dtype=dtype))
@@ -165,7 +170,7 @@ class ContactOscillator(eqx.Module):
         x0 = jnp.sqrt((2 * energy - (1 + y0**2) * z_velocity**2 - y0**2 - z0**2) / (1 + self.epsilon * z0**2))
         q = jnp.stack([x0, y0, z0])
         p = jnp.stack([-y0 * z_velocity, jnp.zeros_like(y0), z_velocity])
-        return q, p
+        return self.to_adapted(q, p)
 
 
 def contact_oscillator(epsilon: float = 0.5, gauge: float = 1.0) -> ContactOscillator:

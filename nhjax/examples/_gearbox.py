@@ -15,12 +15,14 @@ exact flow separately (`pendulum_energy`); a discrete-gradient method keeps only
 sum exactly.
 """
 
-import equinox as eqx
+from typing import ClassVar
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._nonholonomic import NonholonomicSystem
+from ._example import AbstractExample
 
 
 def potential(q, args=None) -> Float[Array, ""]:
@@ -48,12 +50,12 @@ def pendulum_energy(q, p) -> Float[Array, "..."]:
     return 0.5 * p[..., 2] ** 2 + jnp.cos(q[..., 2]) - 0.2 * jnp.sin(2 * q[..., 2])
 
 
-class Gearbox(eqx.Module):
-    """The gearbox of §4.4 (no parameters: `args` is `None`)."""
+class Gearbox(AbstractExample):
+    """The gearbox of §4.4 (no parameters: `args` is `None`); no adapted form, so its
+    initial states are $(q, p)$."""
 
-    @property
-    def args(self) -> None:
-        return None
+    name: ClassVar[str] = "gearbox"
+    title: ClassVar[str] = "the gearbox of §4.4 (Figure 3), from a random state on the constraint"
 
     @property
     def canonical(self) -> NonholonomicSystem:
@@ -76,6 +78,10 @@ class Gearbox(eqx.Module):
     @staticmethod
     def pendulum_energy(q, p):
         return pendulum_energy(q, p)
+
+    def initial_state(self, seed: int = 0, dtype=None) -> tuple[Array, Array]:
+        """`random_initial_state` of the key of `seed`."""
+        return self.random_initial_state(jax.random.key(seed), dtype)
 
     def random_initial_state(self, key: PRNGKeyArray, dtype=None) -> tuple[Array, Array]:
         """q and p uniform in [-1, 1]^3, p projected onto the constraint: a generic

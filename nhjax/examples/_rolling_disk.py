@@ -9,13 +9,15 @@ $(x_1, x_2, \theta, \phi, \rho_1, \rho_2)$ with
 $\mathcal{H} = \tfrac12[\rho_1^2/(mr^2 + J_\phi) + \rho_2^2/J_\theta]$.
 """
 
-import equinox as eqx
+from typing import ClassVar
+
 import jax.numpy as jnp
 from jaxtyping import Array, Float, ArrayLike
 
 from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
+from ._example import AbstractExample
 from ._parameters import parameters, require_positive
 
 
@@ -69,7 +71,7 @@ def _constraints(q, args):
     )
 
 
-class RollingDisk(eqx.Module):
+class RollingDisk(AbstractExample):
     """The rolling disk with mass `m`, radius `r` and moments of inertia `J_theta`
     (about the vertical axis) and `J_phi` (about the axle). Defaults: a uniform disk of
     unit mass and radius. `args` holds the parameters for the system's functions."""
@@ -79,12 +81,11 @@ class RollingDisk(eqx.Module):
     J_theta: float = 0.25
     J_phi: float = 0.5
 
+    name: ClassVar[str] = "disk"
+    title: ClassVar[str] = "the rolling disk of §2 (a vertical disk rolling on a plane), rolling on a line"
+
     def __check_init__(self):
         require_positive(_NAME, m=self.m, r=self.r, J_theta=self.J_theta, J_phi=self.J_phi)
-
-    @property
-    def args(self) -> dict[str, float]:
-        return dict(m=self.m, r=self.r, J_theta=self.J_theta, J_phi=self.J_phi)
 
     @property
     def adapted(self) -> SkewGradientSystem:

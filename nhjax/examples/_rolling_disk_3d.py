@@ -36,12 +36,14 @@ $$(J_a - J_d + mr^2)\,\Omega^2 s_{\theta_0}c_{\theta_0} + (J_a + mr^2)\,\Omega\o
   + mgr\,s_{\theta_0} = 0.$$
 """
 
-import equinox as eqx
+from typing import ClassVar
+
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
+from ._example import AbstractExample
 from ._parameters import parameters, require_positive
 
 
@@ -95,7 +97,7 @@ def _constraints(q, args):
     )
 
 
-class RollingDisk3D(eqx.Module):
+class RollingDisk3D(AbstractExample):
     """Euler's disk with mass `m`, radius `r`, gravity `g` and moments of inertia
     `J_axle` and `J_diameter`. Defaults: a uniform disk of unit mass and radius, and
     $g = 1$ (time in units of $\\sqrt{r/g}$). `args` holds the parameters for the
@@ -107,12 +109,14 @@ class RollingDisk3D(eqx.Module):
     J_axle: float = 0.5
     J_diameter: float = 0.25
 
+    name: ClassVar[str] = "disk-3d"
+    title: ClassVar[str] = (
+        "Euler's disk, a disk rolling on a plane free to lean, turn and spin (derived with sympy), "
+        "from a generic state"
+    )
+
     def __check_init__(self):
         require_positive(_NAME, m=self.m, r=self.r, g=self.g, J_axle=self.J_axle, J_diameter=self.J_diameter)
-
-    @property
-    def args(self) -> dict[str, float]:
-        return {name: getattr(self, name) for name in _PARAMETERS}
 
     @property
     def canonical(self) -> NonholonomicSystem:
@@ -150,6 +154,14 @@ class RollingDisk3D(eqx.Module):
              spin_rate + 0 * q[2]]
         ).astype(q.dtype)
         return q, _metric(q, args) @ qdot
+
+    def initial_state(
+        self, x=0.3, y=-0.2, heading=0.4, lean=0.25, spin=0.1, turn_rate=0.6, lean_rate=-0.3, spin_rate=2.5, dtype=None
+    ) -> tuple[Array, Array]:
+        """A generic state (no adapted form: $(q, p)$), by `state`; the defaults lean
+        the disk, turn and tip it."""
+        q = jnp.asarray([x, y, heading, lean, spin], dtype=dtype)
+        return self.state(q, turn_rate, lean_rate, spin_rate)
 
     def steady_spin_rate(self, lean, turn_rate, args=None):
         r"""The spin rate $\omega$ of steady rolling at lean $\theta_0$ and turning rate

@@ -10,11 +10,13 @@ $C^2_{12} = I_{23}/I_{22}$. Equilibria: the line $c = 0$, i.e.
 $I_{13}\omega_1 + I_{23}\omega_2 = 0$.
 """
 
-import equinox as eqx
+from typing import ClassVar
+
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._system import SkewGradientSystem
+from ._example import AbstractExample
 from ._parameters import parameters, require_finite, require_positive
 
 
@@ -43,7 +45,7 @@ def _structure(rho, args):
     return jnp.array([[zero, -c], [c, zero]])
 
 
-class Suslov(eqx.Module):
+class Suslov(AbstractExample):
     """The Suslov problem with inertia entries `I11`, `I22`, `I13`, `I23` ($I_{12} = 0$;
     $I_{33}$ does not enter the reduced dynamics). State: $(\\rho_1, \\rho_2)$."""
 
@@ -52,13 +54,15 @@ class Suslov(eqx.Module):
     I13: float = 0.5
     I23: float = 0.3
 
+    name: ClassVar[str] = "suslov"
+    title: ClassVar[str] = (
+        "the Suslov problem of §4.3 (a rigid body with one body-frame angular velocity held at zero), "
+        "in adapted form only"
+    )
+
     def __check_init__(self):
         require_positive(_NAME, I11=self.I11, I22=self.I22)
         require_finite(_NAME, I13=self.I13, I23=self.I23)
-
-    @property
-    def args(self) -> dict[str, float]:
-        return dict(I11=self.I11, I22=self.I22, I13=self.I13, I23=self.I23)
 
     @property
     def adapted(self) -> SkewGradientSystem:

@@ -14,8 +14,8 @@ TIGHT = dict(rtol=1e-13, atol=1e-13)
 
 
 def _start():
-    q0, p0 = OSCILLATOR.initial_state()
-    return (q0, p0), OSCILLATOR.to_adapted(q0, p0)
+    x0 = OSCILLATOR.initial_state()
+    return OSCILLATOR.from_adapted(x0), x0
 
 
 def test_initial_state_has_the_asked_energies_and_keeps_the_constraint():
