@@ -15,23 +15,24 @@ import shutil
 import numpy as np
 import pytest
 
-from nhjax._reproduce import FIGURES, QUICK, reproduce
+from nhjax._reproduce import figure, FIGURES, reproduce
 
 
-SMALL = dataclasses.replace(
-    QUICK,
-    quartic_methods=("SI-DLA", "GONZALEZ"),
-    order_step_sizes=(0.1, 0.05, 0.025),
-    sleigh_gonzalez_r=False,
-    gearbox_steps=4000,
-    gearbox_chunk_steps=2000,
-    work_methods=("SI-DLA", "GONZALEZ"),
-    work_step_sizes=(0.1, 0.05, 0.025),
-    work_tolerances=(1e-6, 1e-9),
-    work_repeats=1,
-    work_compositions=("GONZALEZ order 4",),
-    work_composition_step_sizes=(0.25, 0.125, 0.0625),
-)
+# Two methods on the quartic, one of each kind; each figure's quick sizes otherwise.
+SMALL = {
+    "fig1": dataclasses.replace(figure("fig1").quick, methods=("SI-DLA", "GONZALEZ"), order_step_sizes=(0.1, 0.05, 0.025)),
+    "fig2": dataclasses.replace(figure("fig2").quick, gonzalez_r=False),
+    "fig3": dataclasses.replace(figure("fig3").quick, steps=4000, chunk_steps=2000),
+    "fig4": dataclasses.replace(
+        figure("fig4").quick,
+        methods=("SI-DLA", "GONZALEZ"),
+        step_sizes=(0.1, 0.05, 0.025),
+        tolerances=(1e-6, 1e-9),
+        repeats=1,
+        compositions=("GONZALEZ order 4",),
+        composition_step_sizes=(0.25, 0.125, 0.0625),
+    ),
+}
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -207,3 +208,19 @@ def test_unknown_figures_are_refused(figures, tmp_path):
     with pytest.raises(ValueError, match="choose from fig1, fig2, fig3, fig4, fig5 or all"):
         reproduce(figures, quick=True, out=tmp_path, progress=False)
     assert not any(tmp_path.iterdir())
+
+
+def test_each_figure_is_one_record_the_report_reads(reproduction):
+    """Each experiment's record names it, sizes it at both sizes with one class, and
+    gives the report its title, table and note: the report shows exactly those."""
+    _, results = reproduction
+    out, _ = reproduction
+    report = (out / "report.md").read_text()
+    for name in FIGURES:
+        record = figure(name)
+        assert record.name == name
+        assert dataclasses.is_dataclass(record.full) and type(record.quick) is type(record.full)
+        assert f"## {record.title}\n" in report
+        assert "| method | " + " | ".join(record.columns) + " |" in report
+        assert record.note in report
+        assert set(record.columns) <= set(next(iter(results[name]["methods"].values())))

@@ -11,12 +11,15 @@ runs beside it (its reduced coordinates come from a Householder frame, not the p
 its paths are shown in the paper's $\rho$ through `to_adapted`).
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import nhjax as nh
 from ._common import check, Context, METHODS, new_figure, roundoff, save_figure, verdict
+from ._figure import Figure
 
 
 STEP = 0.5
@@ -25,6 +28,21 @@ RHO2 = -0.6
 # The x1x2 panel shows the turn from the unstable to the stable motion; after it the
 # sleigh runs straight on.
 PARTIAL_TIME = 250.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Sizes:
+    """- `steps`: the steps of h = 0.5.
+    - `gonzalez_r`: whether GONZALEZ-R on the canonical sleigh runs beside the adapted
+      method."""
+
+    steps: int
+    gonzalez_r: bool
+
+
+FULL = Sizes(steps=2000, gonzalez_r=True)
+# GONZALEZ-R on the sleigh alone compiles for longer than the rest of the figure.
+QUICK = dataclasses.replace(FULL, gonzalez_r=False)
 
 
 def _paths(sleigh, method_name: str, starts, n_steps: int):
@@ -75,13 +93,13 @@ def run(context: Context) -> dict:
     sizes = context.sizes
     sleigh = nh.examples.chaplygin_sleigh(J=8.0, a=1.0, m=1.0)
     starts = jnp.stack([sleigh.initial_state(x1=-5.0, x2=0.0, theta=0.1, rho1=rho1, rho2=RHO2) for rho1 in RHO1])
-    names = ("GONZALEZ", "GONZALEZ-R") if sizes.sleigh_gonzalez_r else ("GONZALEZ",)
-    paths = {name: _paths(sleigh, name, starts, sizes.sleigh_steps) for name in names}
+    names = ("GONZALEZ", "GONZALEZ-R") if sizes.gonzalez_r else ("GONZALEZ",)
+    paths = {name: _paths(sleigh, name, starts, sizes.steps) for name in names}
     settled_rho2 = float(np.hypot(RHO1[1], RHO2))
     image = plot(context.out / "fig2.png", paths, settled_rho2)
 
     stability_limit = float(abs(2 / (sleigh.bracket_coefficient(sleigh.args) * RHO2)))
-    bound = roundoff(sizes.sleigh_steps)
+    bound = roundoff(sizes.steps)
     per_method, checks = {}, []
     for name, (times, adapted, energy, constraint) in paths.items():
         final = adapted[:, -1, 3:]
@@ -110,7 +128,7 @@ def run(context: Context) -> dict:
     checks.append(check(STEP < stability_limit, f"h = {STEP}, |2/(C rho2)| = {stability_limit:.1f}",
                         "h < |2/(C rho2)| (Proposition 4.1)"))
     return dict(
-        settings=dict(J=8.0, a=1.0, m=1.0, h=STEP, n_steps=sizes.sleigh_steps, x1=-5.0, x2=0.0, theta=0.1,
+        settings=dict(J=8.0, a=1.0, m=1.0, h=STEP, n_steps=sizes.steps, x1=-5.0, x2=0.0, theta=0.1,
                       rho1=list(RHO1), rho2=RHO2, stability_limit_h=stability_limit, roundoff_bound=bound),
         expected_final_rho=[0.0, settled_rho2],
         methods=per_method,
@@ -118,3 +136,14 @@ def run(context: Context) -> dict:
         checks=checks,
         **verdict(checks),
     )
+
+
+FIGURE = Figure(
+    name="fig2",
+    title="Figure 2: the Chaplygin sleigh (§4.2)",
+    run=run,
+    full=FULL,
+    quick=QUICK,
+    columns=("final_rho", "time_rho2_turns_positive", "max_relative_energy_error", "max_constraint_error"),
+    note="rho = (rho1, rho2) in the paper's orthonormal frame, for rho1(0) = -0.001 and 0.001.",
+)

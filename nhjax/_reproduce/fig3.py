@@ -10,17 +10,34 @@ makes the oscillators stable (see `nhjax.examples.gearbox`) it stays bounded but
 roundoff.
 """
 
+import dataclasses
+
 import jax
 import numpy as np
 
 import nhjax as nh
 from .._runner import run_chunked
-from ._sizes import FULL
-from ._common import check, Context, METHODS, new_figure, positive, roundoff, save_figure, verdict
+from ._figure import Figure
+from ._common import check, Context, METHODS, new_figure, positive, roundoff, save_figure, SEED, verdict
 
 
 STEP = 0.1
 NAMES = ("GONZALEZ-R", "GONZALEZ-F", "SI-DLA")
+
+
+@dataclasses.dataclass(frozen=True)
+class Sizes:
+    """- `steps`, `save_every`, `chunk_steps`: the run at h = 0.1, its saving interval
+    and the steps per chunk on disk."""
+
+    steps: int
+    save_every: int
+    chunk_steps: int
+
+
+# t in [0, 50 000] at h = 0.1.
+FULL = Sizes(steps=500_000, save_every=100, chunk_steps=50_000)
+QUICK = dataclasses.replace(FULL, steps=50_000, chunk_steps=10_000)
 
 
 def plot(path, runs) -> str:
@@ -38,7 +55,7 @@ def plot(path, runs) -> str:
 def run(context: Context) -> dict:
     sizes = context.sizes
     gearbox = nh.examples.gearbox()
-    y0 = gearbox.random_initial_state(jax.random.key(sizes.seed))
+    y0 = gearbox.random_initial_state(jax.random.key(SEED))
     runs = {}
     for name in NAMES:
         solution = run_chunked(
@@ -46,10 +63,10 @@ def run(context: Context) -> dict:
             METHODS[name].solver,
             y0,
             STEP,
-            sizes.gearbox_steps,
-            directory=context.chunk_directory(f"fig3_{name}_{sizes.gearbox_steps}"),
-            save_every=sizes.gearbox_save_every,
-            chunk_steps=sizes.gearbox_chunk_steps,
+            sizes.steps,
+            directory=context.chunk_directory(f"fig3_{name}_{sizes.steps}"),
+            save_every=sizes.save_every,
+            chunk_steps=sizes.chunk_steps,
             progress=context.progress,
         )
         energy = np.asarray(solution.energy)
@@ -60,7 +77,7 @@ def run(context: Context) -> dict:
         )
     image = plot(context.out / "fig3.png", runs)
 
-    bound = roundoff(sizes.gearbox_steps)
+    bound = roundoff(sizes.steps)
     energy = {name: float(run["relative_energy"].max()) for name, run in runs.items()}
     constraint = {name: float(run["constraint"].max()) for name, run in runs.items()}
     checks = [
@@ -80,15 +97,15 @@ def run(context: Context) -> dict:
         check(constraint["GONZALEZ-F"] > 1e3 * bound,
               f"GONZALEZ-F's constraint error {constraint['GONZALEZ-F']:.0e}", f"> 1000 x {bound:.0e} (not kept)"),
     ]
-    reduced = sizes.gearbox_steps != FULL.gearbox_steps
+    reduced = sizes.steps != FULL.steps
     return dict(
         size_note=(
-            f"{sizes.gearbox_steps} steps (t = {STEP * sizes.gearbox_steps:g}), not the paper's {FULL.gearbox_steps} "
-            f"(t = {STEP * FULL.gearbox_steps:g})."
+            f"{sizes.steps} steps (t = {STEP * sizes.steps:g}), not the paper's {FULL.steps} "
+            f"(t = {STEP * FULL.steps:g})."
         ) if reduced else None,
-        settings=dict(h=STEP, n_steps=sizes.gearbox_steps, t1=STEP * sizes.gearbox_steps, seed=sizes.seed,
+        settings=dict(h=STEP, n_steps=sizes.steps, t1=STEP * sizes.steps, seed=SEED,
                       initial_q=np.asarray(y0[0]).tolist(), initial_p=np.asarray(y0[1]).tolist(),
-                      save_every=sizes.gearbox_save_every, roundoff_bound=bound),
+                      save_every=sizes.save_every, roundoff_bound=bound),
         methods={name: dict(max_relative_energy_error=energy[name], max_constraint_error=constraint[name],
                             final_relative_energy_error=float(runs[name]["relative_energy"][-1]))
                  for name in NAMES},
@@ -96,3 +113,14 @@ def run(context: Context) -> dict:
         checks=checks,
         **verdict(checks),
     )
+
+
+FIGURE = Figure(
+    name="fig3",
+    title="Figure 3: the gearbox driven by an asymmetric pendulum (§4.4)",
+    run=run,
+    full=FULL,
+    quick=QUICK,
+    columns=("max_relative_energy_error", "final_relative_energy_error", "max_constraint_error"),
+    note="Errors are maxima over the saves (every 100 steps).",
+)
