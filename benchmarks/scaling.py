@@ -251,7 +251,7 @@ def _against_scipy(repeats):
         ))
 
     projected = jax.jit(lambda tolerance: nh.integrate_adaptive(
-        system, (q0, p0), T1, disk.args, solver=nh.Projection(diffrax.Dopri8()), rtol=tolerance, atol=tolerance
+        system, (q0, p0), T1, disk.args, method=nh.Projection(diffrax.Dopri8()), rtol=tolerance, atol=tolerance
     ))
     compile_s = {"Dopri8 + projection": timed(lambda: projected.lower(1e-8).compile())}
     runs["Dopri8 + projection"] = []

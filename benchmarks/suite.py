@@ -169,7 +169,7 @@ def _adaptive(system, y0, t1, solver, tolerance, repeats):
 
     @jax.jit
     def run(y0):
-        return nh.integrate_adaptive(system, y0, t1, solver=solver, rtol=tolerance, atol=tolerance,
+        return nh.integrate_adaptive(system, y0, t1, method=solver, rtol=tolerance, atol=tolerance,
                                      save_at=save_at, max_steps=10_000_000)
 
     return run_and_time(run, y0, repeats=repeats)

@@ -8,14 +8,12 @@ conservation to roundoff. float32 works too, with tolerances that follow the dty
 from . import examples as examples
 from ._discrete_gradient import avf as avf, gonzalez as gonzalez, itoh_abe as itoh_abe
 from ._ensemble import integrate_ensemble as integrate_ensemble
-from ._integrate import (
-    integrate as integrate,
-    integrate_adaptive as integrate_adaptive,
-    Solution as Solution,
-)
+from ._integrate import integrate as integrate
+from ._integrate_adaptive import integrate_adaptive as integrate_adaptive
 from ._nonholonomic import NonholonomicSystem as NonholonomicSystem
 from ._results import RESULTS as RESULTS
 from ._runner import run_chunked as run_chunked
+from ._solution import Solution as Solution
 from ._solver import (
     AbstractMethod as AbstractMethod,
     averaged_structure as averaged_structure,

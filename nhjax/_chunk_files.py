@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._integrate import Solution
+from ._solution import Solution
 from ._results import result_codes, RESULTS, SUCCESS
 
 

@@ -12,7 +12,9 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
-from ._integrate import trace_floats, check_args, check_step_counts, check_step_size, integrate, Solution
+from ._arguments import check_args, check_step_counts, check_step_size, trace_floats
+from ._integrate import integrate
+from ._solution import Solution
 from ._results import result_codes, RESULTS, SUCCESS
 from ._system import AbstractSystem
 

@@ -22,7 +22,7 @@ every checkpoint, contribute nothing to it. So a run's derivatives come from
 
 The replay repeats the recorded step's arithmetic on the same values, so its states
 are the run's states; it steps to the same times $t_0 + k\,\Delta t$ as
-`nhjax._integrate.FixedStepTimes`, reports the same codes and statistics as the diffrax
+`nhjax._step_times.FixedStepTimes`, reports the same codes and statistics as the diffrax
 loop (a failed step is the last one taken; the saves after it are NaN, their times
 inf), and a trajectory that failed has NaN derivatives (`nhjax.integrate` gates
 them). `python benchmarks/gradients.py` measures the derivative against the forward
@@ -67,7 +67,7 @@ def _first_carry_and_unknowns(system, method, y0, dt, args):
 
 
 def _step_time(t0, dt, k):
-    """$t_k$, rounded as `nhjax._integrate.FixedStepTimes` rounds it."""
+    """$t_k$, rounded as `nhjax._step_times.FixedStepTimes` rounds it."""
     return t0 + dt * k.astype(dt.dtype)
 
 

@@ -26,7 +26,9 @@ from ._chunk_files import (
     with_identity,
     write_atomically,
 )
-from ._integrate import check_args, check_step_counts, check_step_size, integrate, Solution, trace_floats
+from ._arguments import check_args, check_step_counts, check_step_size, trace_floats
+from ._integrate import integrate
+from ._solution import Solution
 from ._results import SUCCESS
 from ._system import is_int
 

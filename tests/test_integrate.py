@@ -258,6 +258,20 @@ def test_fixed_step_tsit5_baseline_is_fifth_order_and_preserves_neither_invarian
     assert float(jnp.max(jnp.abs(long.constraint))) > 1e-10
 
 
+def test_adaptive_takes_its_method_by_the_name_integrate_uses():
+    """method= as in nhjax.integrate; the old solver= still works for a release, with a
+    DeprecationWarning, and the same run; both at once is refused."""
+    y0 = GEARBOX.random_initial_state(jax.random.key(0))
+    new = nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, method=diffrax.Tsit5(), rtol=1e-8, atol=1e-8)
+    with pytest.warns(DeprecationWarning, match="solver= is now method="):
+        old = nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, solver=diffrax.Tsit5(), rtol=1e-8, atol=1e-8)
+    np.testing.assert_array_equal(old.ys[0], new.ys[0])
+    default = nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, rtol=1e-8, atol=1e-8)
+    assert int(default.stats["num_steps"]) != int(new.stats["num_steps"])  # Dopri8, not Tsit5
+    with pytest.raises(TypeError, match="takes the method once"):
+        nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, method=diffrax.Tsit5(), solver=diffrax.Tsit5())
+
+
 def test_adaptive_baseline_bad_input_and_result_codes():
     y0 = GEARBOX.random_initial_state(jax.random.key(0))
     with pytest.raises(ValueError, match="t1 must be after t0"):

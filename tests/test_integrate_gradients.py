@@ -385,7 +385,7 @@ def test_reverse_mode_inside_second_derivatives_are_nan_not_wrong():
 
 
 def test_derivatives_replay_runs_whose_roots_fit_the_budget():
-    from nhjax._integrate import CHECKPOINT_BUDGET_BYTES, replays_derivatives
+    from nhjax._adjoints import CHECKPOINT_BUDGET_BYTES, replays_derivatives
 
     y0, args = _gearbox_start()
     dt = jnp.asarray(0.1)
@@ -402,7 +402,7 @@ def test_runs_beyond_the_replay_budget_are_differentiated_through_the_checkpoint
     differentiates diffrax's loop with `default_adjoint` instead of the replay: the
     same gradient as the replay's; forward mode there is refused, as for any
     checkpointed loop."""
-    import nhjax._integrate as integrate_module
+    import nhjax._adjoints as adjoints
 
     (q0, p0), args = _gearbox_start()
     dt = jnp.asarray(0.1)
@@ -417,8 +417,8 @@ def test_runs_beyond_the_replay_budget_are_differentiated_through_the_checkpoint
         return jnp.sum(solution.ys[0][-1] ** 2) + jnp.sum(jnp.sin(solution.ys[1]))
 
     replayed = jax.grad(loss, argnums=1)(GEARBOX, p0)
-    monkeypatch.setattr(integrate_module, "CHECKPOINT_BUDGET_BYTES", 1024)
-    assert not integrate_module.replays_derivatives(same_gearbox, nh.GonzalezR(), (q0, p0), args, dt, 33)
+    monkeypatch.setattr(adjoints, "CHECKPOINT_BUDGET_BYTES", 1024)
+    assert not adjoints.replays_derivatives(same_gearbox, nh.GonzalezR(), (q0, p0), args, dt, 33)
     checkpointed = jax.grad(loss, argnums=1)(same_gearbox, p0)
     assert _relative(checkpointed, replayed) <= 1e-12
     with pytest.raises(TypeError, match="custom_vjp"):
@@ -443,7 +443,7 @@ def test_float32_derivatives_agree_with_float64():
 
 
 def test_default_adjoint_checkpoints_every_step_within_its_budget():
-    from nhjax._integrate import CHECKPOINT_BUDGET_BYTES, default_adjoint
+    from nhjax._adjoints import CHECKPOINT_BUDGET_BYTES, default_adjoint
 
     y0, args = _gearbox_start()
     dt = jnp.asarray(0.1)

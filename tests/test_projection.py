@@ -75,7 +75,7 @@ def test_adaptive_saves_lie_on_the_invariant_set():
     gearbox, y0 = _gearbox()
     save_at = jnp.linspace(0.0, 10.0, 23)
     solution = nh.integrate_adaptive(
-        gearbox.canonical, y0, 10.0, save_at=save_at, solver=nh.Projection(diffrax.Dopri8()), rtol=1e-8, atol=1e-8
+        gearbox.canonical, y0, 10.0, save_at=save_at, method=nh.Projection(diffrax.Dopri8()), rtol=1e-8, atol=1e-8
     )
     plain = nh.integrate_adaptive(gearbox.canonical, y0, 10.0, save_at=save_at, rtol=1e-8, atol=1e-8)
     assert relative_energy_error(plain) > 1e-10
