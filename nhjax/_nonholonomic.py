@@ -216,8 +216,7 @@ class NonholonomicSystem(AbstractSystem):
 
     def to_reduced(self, y, args, signs) -> Float[Array, " n+m"]:
         r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
-        q, p = y
-        return jnp.concatenate([q, self.frame_operator(q, args, signs).transpose_times(p)])
+        return ReducedSystem(self, signs).to_reduced(y, args)
 
     def from_reduced(self, zeta, args, signs) -> tuple[Array, Array]:
         """$(q, p)$ from $\\zeta = (q, \\rho)$, eq. (ptoptilde)."""

@@ -1,13 +1,15 @@
 r"""The reduced form of a `NonholonomicSystem` on $\mathcal{D}^*$ for a Householder
 frame, eqs. (PiMat), (skewMat), (eq:Htgrad): what GONZALEZ-R integrates, and what
-`NonholonomicSystem.reduced` and `NonholonomicSystem.from_reduced` build on.
+`NonholonomicSystem.reduced`, `.to_reduced` and `.from_reduced` build on. It takes the
+system as it is given (anything with the `NonholonomicSystem` methods it calls) and
+imports nothing of it: the dependence runs one way, `nhjax._nonholonomic` to here.
 
 Notation as in `nhjax._nonholonomic`: $H = \tfrac12 p^TK(q)p + V(q)$, $M = K^{-1}$,
 frame $X(q; s)$ of $\ker A(q)$, $\rho = X^Tp$, $\zeta = (q, \rho)$.
 """
 
 from collections.abc import Callable
-from typing import Any, Literal, NamedTuple, TYPE_CHECKING
+from typing import Any, Literal, NamedTuple
 
 import equinox as eqx
 import jax
@@ -17,10 +19,6 @@ from jaxtyping import Array, Float
 from ._adapted import adapted_structure
 from ._householder import HouseholderFrame
 from ._linalg import product, solve_spd
-
-
-if TYPE_CHECKING:
-    from ._nonholonomic import NonholonomicSystem
 
 
 Derivative = Literal["autodiff", "central_difference"]
@@ -48,7 +46,7 @@ def momentum_in_frame(frame: HouseholderFrame, rho, metric=None):
     return weighted @ y, y
 
 
-def momentum_by_projection(system: "NonholonomicSystem", q, frame: HouseholderFrame, rho, args):
+def momentum_by_projection(system, q, frame: HouseholderFrame, rho, args):
     r"""Eq. (ptoptilde) where $M$ depends on $q$, without forming $M$: the $p$ and $y$
     of `momentum_in_frame`, from products with $K = M^{-1}$ alone.
 
@@ -163,7 +161,7 @@ class ReducedSystem(eqx.Module):
     the QR only there.
     """
 
-    system: "NonholonomicSystem"
+    system: Any  # a NonholonomicSystem
     signs: Float[Array, " k"]
     derivative: Derivative = eqx.field(default="autodiff", static=True)
     difference_step: Any = None
@@ -191,6 +189,11 @@ class ReducedSystem(eqx.Module):
     def frame(self, q, args) -> HouseholderFrame:
         """The frame $X(q; s)$ with this system's signs, not formed."""
         return self.system.frame_operator(q, args, self.signs)
+
+    def to_reduced(self, y, args) -> Float[Array, " n+m"]:
+        r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
+        q, p = y
+        return jnp.concatenate([q, self.frame(q, args).transpose_times(p)])
 
     def from_reduced(self, zeta, args) -> tuple[Array, Array]:
         r"""$(q, p)$ from $\zeta = (q, \rho)$, eq. (ptoptilde)."""

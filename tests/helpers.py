@@ -7,6 +7,7 @@ import pytest
 
 import nhjax as nh
 from nhjax._methods import METHODS as REGISTRY
+from nhjax._reproduce._common import fitted_order as fitted_order
 
 
 # Every nhjax method, by its name in the package's registry (AVF aside: it differs from
@@ -46,12 +47,6 @@ def canonical_starts():
         example = nh.examples.EXAMPLES[name]()
         starts[label] = (example, example.start("canonical", **choices))
     return starts
-
-
-def fitted_order(step_sizes, errors) -> float:
-    """Slope of log(error) against log(h), least squares."""
-    slope, _ = np.polyfit(np.log(np.asarray(step_sizes)), np.log(np.asarray(errors)), 1)
-    return float(slope)
 
 
 def relative_energy_error(solution) -> float:

@@ -224,6 +224,10 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
 
+    # diffrax's `AbstractImplicitSolver` declares these two as well, but a method is not
+    # one: `diffrax.diffeqsolve` rewrites an implicit solver's root-finder tolerances
+    # from the step-size controller, and `root_finder=None` (the default for the
+    # state's dtype, `default_root_finder`) has none to rewrite.
     root_finder: eqx.AbstractVar[optx.AbstractRootFinder | None]
     root_find_max_steps: eqx.AbstractVar[int]
 

@@ -221,6 +221,10 @@ class Composition(diffrax.AbstractSolver):
 
     interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
 
+    # Not a `diffrax.AbstractWrappedSolver` (as `nhjax.Projection` is): a wrapper passes
+    # `isinstance` checks as what it wraps, and a composition would pass as an
+    # `AbstractMethod` whose one-root step it does not have (its step is `stages` root
+    # finds, of another order, with statistics of its own).
     method: AbstractMethod
     scheme_order: int = eqx.field(static=True)
     coefficients: tuple[float, ...] = eqx.field(static=True)

@@ -172,7 +172,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         $h$, for the predictor (NaN until there are any)."""
         q, _ = y0
         signs = lax.stop_gradient(system.frame_signs(q, args))
-        zeta = system.to_reduced(y0, args, signs)
+        zeta = ReducedSystem(system, signs).to_reduced(y0, args)
         unknown = jnp.full_like(zeta, jnp.nan)
         no_step = jnp.full((), jnp.nan, dtype=zeta.dtype)
         return _Carry(zeta, signs, unknown, unknown, no_step, no_step)
@@ -186,8 +186,8 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         q, _ = y0
         signs = lax.stop_gradient(system.frame_signs(q, args))
         continues = jnp.all(signs == carry.signs) & jnp.all(carry.zeta[: q.shape[0]] == q)
-        zeta = jnp.where(continues, carry.zeta, system.to_reduced(y0, args, signs))
         reduced = self._reduced(system, signs, h, y0, args)
+        zeta = jnp.where(continues, carry.zeta, reduced.to_reduced(y0, args))
         # The predictor: the mean velocity of this step extrapolated linearly from those
         # of the two before, an O(h^2) error in the velocity, so the guess is O(h^3) from
         # the root; otherwise (the first two steps, a restart, a change of signs, in
