@@ -133,6 +133,12 @@ def integrate(
     check_step_size(dt, t0)
     check_args(args)
     system.check_shapes(y0, args)
+    if system.is_forced():
+        raise ValueError(
+            f"nhjax.integrate does not take a system with a force or a dissipation yet (with "
+            f"{type(method).__name__} or any other method): nhjax.integrate_adaptive does, and reports "
+            "the energy balance (Solution.work, Solution.dissipated)."
+        )
     dtype = state_dtype(y0)
     dt, t0 = jnp.asarray(dt, dtype=dtype), jnp.asarray(t0, dtype=dtype)
     solution = _integrate(

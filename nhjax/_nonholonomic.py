@@ -9,6 +9,7 @@ $m = n - k$.
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -18,7 +19,14 @@ from ._linalg import is_quadratic_form, solve_spd
 from ._householder import HouseholderFrame, householder_frame_operator, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
 from ._reduced import Derivative, ReducedSystem
-from ._system import AbstractSystem, SkewGradientSystem, require_floating_vector, require_scalar
+from ._system import (
+    AbstractSystem,
+    check_dissipation_and_force,
+    dissipation_result,
+    require_floating_vector,
+    require_scalar,
+    SkewGradientSystem,
+)
 
 
 # Multiples of eps in the initial-state checks: loose enough for states built in
@@ -30,12 +38,34 @@ def _tolerance(dtype, scale):
     return _CHECK_TOLERANCE * jnp.finfo(dtype).eps * (1 + scale)
 
 
-class NonholonomicSystem(AbstractSystem):
-    r"""A mechanical system with linear velocity constraints, eq. (eq:HamEq):
+class _InVelocities(eqx.Module):
+    r"""A dissipation `function(q, qdot, args)` or force `function(t, q, qdot, args)`
+    given in velocities (`NonholonomicSystem.from_lagrangian`), called in canonical
+    coordinates with $\dot q = \partial H/\partial p$."""
 
-    $$\dot q = \frac{\partial H}{\partial p}, \qquad
-      \dot p = -\frac{\partial H}{\partial q} + A(q)^T\lambda, \qquad
-      A(q)\frac{\partial H}{\partial p} = 0.$$
+    function: Callable
+    hamiltonian: LegendreHamiltonian
+    timed: bool = eqx.field(static=True)
+
+    def __call__(self, *arguments):
+        if self.timed:
+            t, q, p, args = arguments
+            return self.function(t, q, jax.grad(self.hamiltonian, argnums=1)(q, p, args), args)
+        q, p, args = arguments
+        return self.function(q, jax.grad(self.hamiltonian, argnums=1)(q, p, args), args)
+
+
+class NonholonomicSystem(AbstractSystem):
+    r"""A mechanical system with linear velocity constraints, eq. (eq:HamEq), with an
+    optional dissipation $D$ and force $F$:
+
+    $$\dot q = v = \frac{\partial H}{\partial p}, \qquad
+      \dot p = -\frac{\partial H}{\partial q} - D(q, p)\,v + F(t, q, p) + A(q)^T\lambda,
+      \qquad A(q)\,v = 0.$$
+
+    Its energy balance is $\dot H = v^TF - v^TDv$ (`power`): the constraint force does
+    no work, $v^TA^T\lambda = 0$. Without $D$ and $F$ the system is conservative and
+    $H$ is a first integral.
 
     **Arguments:**
 
@@ -43,6 +73,11 @@ class NonholonomicSystem(AbstractSystem):
         $H = \tfrac12 p^T M(q)^{-1} p + V(q)$ with $M$ symmetric positive definite.
         The metric comes from autodiff: $M^{-1} = \partial^2 H/\partial p^2$.
     - `constraints`: `constraints(q, args) -> (k, n)` matrix $A(q)$ of full rank $k < n$.
+    - `dissipation`: `None`, or `dissipation(q, p, args) -> (n, n)`, $D$, symmetric
+        positive semidefinite (Rayleigh damping $\tfrac12v^TDv$, possibly state
+        dependent).
+    - `force`: `None`, or `force(t, q, p, args) -> (n,)`, $F$, a generalized force
+        (motor torques $B(q)u(t)$, a feedback law).
 
     The state is the tuple `(q, p)`. As a diffrax term its vector field is the index-1
     ODE with the multiplier eliminated (`multiplier`), so any diffrax solver integrates
@@ -60,10 +95,17 @@ class NonholonomicSystem(AbstractSystem):
 
     hamiltonian: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, ""]]
     constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]]
+    dissipation: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, "n n"]] | None = None
+    force: Callable[[Any, Float[Array, " n"], Float[Array, " n"], Any], Float[Array, " n"]] | None = None
 
     @classmethod
     def from_lagrangian(
-        cls, lagrangian: Lagrangian, constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]]
+        cls,
+        lagrangian: Lagrangian,
+        constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]],
+        *,
+        dissipation: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, "n n"]] | None = None,
+        force: Callable[[Any, Float[Array, " n"], Float[Array, " n"], Any], Float[Array, " n"]] | None = None,
     ) -> "NonholonomicSystem":
         r"""The system of `lagrangian(q, qdot, args) -> scalar`, of mechanical type
         $L = \tfrac12\dot q^TM(q)\dot q - V(q)$ with $M$ symmetric positive definite,
@@ -85,8 +127,19 @@ class NonholonomicSystem(AbstractSystem):
 
         Every method integrates it as it integrates a system given by $H$; the
         Hamiltonian costs a solve with $M(q)$ per evaluation, which a system written
-        with $H$ directly may avoid."""
-        return cls(LegendreHamiltonian(lagrangian), constraints)
+        with $H$ directly may avoid.
+
+        `dissipation(q, qdot, args) -> (n, n)` and `force(t, q, qdot, args) -> (n,)`
+        mean what they mean for a system given by $H$, in velocities: $D$ of the
+        Rayleigh function $\tfrac12\dot q^TD\dot q$, and the generalized force; the
+        system evaluates them at $\dot q = \partial H/\partial p$."""
+        hamiltonian = LegendreHamiltonian(lagrangian)
+        return cls(
+            hamiltonian,
+            constraints,
+            None if dissipation is None else _InVelocities(dissipation, hamiltonian, timed=False),
+            None if force is None else _InVelocities(force, hamiltonian, timed=True),
+        )
 
     def momentum_from_velocity(self, q, qdot, args) -> Float[Array, " n"]:
         r"""$p = M(q)\dot q$ ($= \partial L/\partial\dot q$), the momentum of the
@@ -130,23 +183,51 @@ class NonholonomicSystem(AbstractSystem):
         q, p = y
         return self.constraints(q, args) @ self.velocity(q, p, args)
 
-    def multiplier(self, y, args) -> Float[Array, " k"]:
+    def multiplier(self, y, args, t=0.0) -> Float[Array, " k"]:
         r"""$\lambda$ from $\tfrac{d}{dt}[A(q)v] = 0$:
-        $A K A^T\lambda = A K \partial_q H - \partial_q(Av)[v]$ (differentiating the constraint along the flow)."""
+        $A K A^T\lambda = A K (\partial_q H + Dv - F) - \partial_q(Av)[v]$
+        (differentiating the constraint along the flow; $D$ and $F$ at time `t`, where
+        the system has them)."""
         q, p = y
         a = self.constraints(q, args)
         v = self.velocity(q, p, args)
         force = jax.grad(self.hamiltonian, argnums=0)(q, p, args)
+        applied = self.applied_force(t, q, p, args)
+        if applied is not None:
+            force = force - applied
         _, drift = jax.jvp(lambda x: self.constraints(x, args) @ self.velocity(x, p, args), (q,), (v,))
         ka_t = self.inverse_metric(q, args) @ a.T
         return solve_spd(a @ ka_t, ka_t.T @ force - drift)
 
+    def applied_force(self, t, q, p, args) -> Float[Array, " n"] | None:
+        r"""$-D(q, p)\,v + F(t, q, p)$, the force of the dissipation and the force on the
+        system; `None` for a conservative system."""
+        if not self.is_forced():
+            return None
+        v = self.velocity(q, p, args)
+        applied = jnp.zeros_like(v)
+        if self.dissipation is not None:
+            applied = applied - self.dissipation(q, p, args) @ v
+        if self.force is not None:
+            applied = applied + self.force(t, q, p, args)
+        return applied
+
     def vf(self, t, y, args):
-        del t
         q, p = y
         force = -jax.grad(self.hamiltonian, argnums=0)(q, p, args)
-        reaction = self.constraints(q, args).T @ self.multiplier(y, args)
+        applied = self.applied_force(t, q, p, args)
+        if applied is not None:
+            force = force + applied
+        reaction = self.constraints(q, args).T @ self.multiplier(y, args, t)
         return self.velocity(q, p, args), force + reaction
+
+    def power(self, t, y, args):
+        q, p = y
+        v = self.velocity(q, p, args)
+        zero = jnp.zeros((), v.dtype)
+        supplied = zero if self.force is None else v @ self.force(t, q, p, args)
+        dissipated = zero if self.dissipation is None else v @ self.dissipation(q, p, args) @ v
+        return supplied, dissipated
 
     def energy(self, y, args):
         return self.hamiltonian(*y, args)
@@ -230,7 +311,12 @@ class NonholonomicSystem(AbstractSystem):
         its Hamiltonian is $\\mathcal{H}(q, \\rho) = H(q, p(q, \\rho))$ and its structure
         is (PiMat) with the block (skewMat). See `ReducedSystem`."""
         reduced = ReducedSystem(self, signs, derivative, difference_step)
-        return SkewGradientSystem(reduced.hamiltonian, reduced.structure)
+        return SkewGradientSystem(
+            reduced.hamiltonian,
+            reduced.structure,
+            None if self.dissipation is None else reduced.dissipation,
+            None if self.force is None else reduced.force,
+        )
 
     # Validation.
 
@@ -257,6 +343,9 @@ class NonholonomicSystem(AbstractSystem):
                 f"constraints(q, args) must return a (k, {n}) matrix with 1 <= k < {n} for "
                 f"q of shape ({n},), got shape {a.shape}."
             )
+        in_velocities = isinstance(self.dissipation or self.force, _InVelocities)
+        t_struct = jax.ShapeDtypeStruct((), jnp.result_type(q))
+        check_dissipation_and_force(self, t_struct, (q, p), args, n, "q, qdot" if in_velocities else "q, p")
 
     def initial_state_result(self, y0, args):
         q, p = y0
@@ -272,6 +361,11 @@ class NonholonomicSystem(AbstractSystem):
             & jnp.all(jnp.isfinite(grad_p))
             & jnp.all(jnp.isfinite(a))
         )
+        dissipation = RESULTS.successful
+        if self.dissipation is not None:
+            matrix = self.dissipation(q, p, args)
+            evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(matrix))
+            dissipation = dissipation_result(matrix)
         return first_failure(
             RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_initial_state),
             # Before the Hamiltonian's checks: a Lagrangian of the wrong type is what the
@@ -281,6 +375,7 @@ class NonholonomicSystem(AbstractSystem):
             RESULTS.where(self._is_mechanical(q, p, args), RESULTS.successful, RESULTS.hamiltonian_not_mechanical),
             self.rank_result(q, args),
             RESULTS.where(satisfied, RESULTS.successful, RESULTS.constraint_violated_initially),
+            dissipation,
         )
 
     def _lagrangian_result(self, q, v, args) -> RESULTS:

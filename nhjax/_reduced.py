@@ -312,6 +312,25 @@ class ReducedSystem(eqx.Module):
     def structure(self, zeta, args) -> Float[Array, "N N"]:
         return self.structure_and_gradient(zeta, args)[0]
 
+    def dissipation(self, zeta, args) -> Float[Array, "N N"]:
+        r"""The system's dissipation in the frame, $R_\zeta = \begin{pmatrix} 0 & 0 \\
+        0 & X^TDX\end{pmatrix}$ at $(q, p(\zeta))$: with $v = Xy$,
+        $y = \partial\mathcal{H}/\partial\rho$, the $\rho$-rows of
+        $R_\zeta\nabla\mathcal{H}$ are $X^TDv$, what the damping force $-Dv$ adds to
+        $\dot\rho = \tfrac{d}{dt}(X^Tp)$ (the constraint force drops out,
+        $X^TA^T = 0$)."""
+        q, p = self.from_reduced(zeta, args)
+        frame = self.frame(q, args).matrix()
+        block = frame.T @ self.system.dissipation(q, p, args) @ frame
+        n, m = q.shape[0], frame.shape[1]
+        return jnp.zeros((n + m, n + m), block.dtype).at[n:, n:].set(block)
+
+    def force(self, t, zeta, args) -> Float[Array, " N"]:
+        r"""The system's force in the frame, $g_\zeta = (0, X^TF(t, q, p(\zeta)))$."""
+        q, p = self.from_reduced(zeta, args)
+        along_frame = self.frame(q, args).transpose_times(self.system.force(t, q, p, args))
+        return jnp.concatenate([jnp.zeros_like(q), along_frame])
+
     def vector_field(self, zeta, args) -> Float[Array, " N"]:
         r"""$\dot\zeta = \Pi(\zeta)\nabla\mathcal{H}(\zeta)$."""
         return self.at(zeta, args).field()

@@ -78,6 +78,12 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "states from that step on are not finite."
     )
     invalid_n_steps = "The number of steps n_steps must lie in [1, max_steps]."
+    dissipation_not_positive_semidefinite = (
+        "The dissipation matrix (D(q, p) of a NonholonomicSystem, R(x) of a "
+        "SkewGradientSystem) is not symmetric positive semidefinite at the initial state "
+        "(checked to 100 eps relative to its largest entry): it would supply energy "
+        "instead of removing it."
+    )
     invalid_tolerance = "The tolerances rtol and atol must be positive and finite."
 
 

@@ -11,6 +11,7 @@ from jaxtyping import Array, Bool, Float, PyTree
 
 from ._results import first_failure, nan_derivatives_where, result_codes, RESULTS, SUCCESS
 from ._solver.base import AbstractMethodState
+from ._system import AbstractSystem
 
 
 class Solution(eqx.Module):
@@ -33,6 +34,12 @@ class Solution(eqx.Module):
         all), `max_root_find_steps` (most iterations in one step); for an
         `nhjax.Composition`, also `substep_root_find_steps` and `failed_substep` (see
         there).
+    - `work`, `dissipated`: for a system with a force or a dissipation
+        (`AbstractSystem.is_forced`), the energy the force supplied and the energy the
+        dissipation removed from `t0` to each save, shape `(n_saved,)`, so that
+        `energy - energy[0] == work - dissipated` (to the method's accuracy); `None` for
+        a conservative system, where both are zero, as `constraint` is `None` for a
+        system without constraints: nothing is computed or stored for them.
     """
 
     ts: Float[Array, " n_saved"]
@@ -41,6 +48,8 @@ class Solution(eqx.Module):
     constraint: Float[Array, "n_saved k"] | None
     result: RESULTS
     stats: dict[str, Array]
+    work: Float[Array, " n_saved"] | None = None
+    dissipated: Float[Array, " n_saved"] | None = None
 
 
 def save_observables(system):
@@ -51,6 +60,23 @@ def save_observables(system):
         return y, system.observables(y, args)
 
     return save
+
+
+class EnergyLedger(eqx.Module):
+    r"""A forced system's vector field with its energy ledger beside the state: the
+    state $(y, w, d)$, with $\dot w$ and $\dot d$ the power supplied by the force and
+    removed by the dissipation (`AbstractSystem.power`), so that a diffrax solver
+    integrates the work and the dissipated energy with the state, to its own order."""
+
+    system: AbstractSystem
+
+    def vf(self, t, state, args):
+        y, _ = state
+        return self.system.vf(t, y, args), jnp.stack(self.system.power(t, y, args))
+
+    def save(self, t, state, args):
+        y, ledger = state
+        return y, {**self.system.observables(y, args), "work": ledger[0], "dissipated": ledger[1]}
 
 
 def solution_from_saves(ts, saved, result: RESULTS, stats, sources) -> Solution:
@@ -81,6 +107,8 @@ def solution_from_saves(ts, saved, result: RESULTS, stats, sources) -> Solution:
         constraint=observed.get("constraint"),
         result=result,
         stats=stats,
+        work=observed.get("work"),
+        dissipated=observed.get("dissipated"),
     )
 
 

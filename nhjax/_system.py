@@ -21,7 +21,9 @@ from ._results import first_failure, RESULTS
 
 
 class AbstractSystem(diffrax.AbstractTerm):
-    """A conservative system: a diffrax term with an energy and an initial-state check."""
+    """A system: a diffrax term with an energy and an initial-state check; conservative
+    unless it has a dissipation or a force (`is_forced`), whose power it then reports
+    (`power`)."""
 
     @abc.abstractmethod
     def energy(self, y, args: Any) -> Float[Array, ""]:
@@ -46,6 +48,20 @@ class AbstractSystem(diffrax.AbstractTerm):
     def observables(self, y, args: Any) -> dict[str, Array]:
         """What `nhjax.integrate` records beside the state at each save."""
         return {"energy": self.energy(y, args)}
+
+    def is_forced(self) -> bool:
+        """Whether the system has a dissipation or a force: its energy then changes by
+        what they supply and remove (`power`)."""
+        return getattr(self, "dissipation", None) is not None or getattr(self, "force", None) is not None
+
+    def power(self, t, y, args: Any) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        r"""(supplied, dissipated): the rates at which the force supplies energy and the
+        dissipation removes it at time `t` and state `y`, so that along the exact flow
+        $\dot H = \text{supplied} - \text{dissipated}$, the dissipated part never
+        negative. Zeros for a conservative system."""
+        del t, args
+        zero = jnp.zeros((), jax.tree.leaves(y)[0].dtype)
+        return zero, zero
 
     def contr(self, t0, t1, **kwargs):
         del kwargs
@@ -75,6 +91,35 @@ def require_floating_vector(name: str, x) -> None:
         raise ValueError(f"{name} must be floating point, got dtype {jnp.result_type(x)}.")
 
 
+def check_dissipation_and_force(system, t_struct, state, args, n: int, arguments: str) -> None:
+    """Shapes and dtypes of a system's `dissipation` (an (n, n) matrix) and `force` (an
+    (n,) vector), from `dissipation(*state, args)` and `force(t, *state, args)`; a
+    `ValueError` naming the problem."""
+    dtype = jnp.result_type(*jax.tree.leaves(state))
+    for name, function, call, shape in (
+        ("dissipation", system.dissipation, lambda: jax.eval_shape(system.dissipation, *state, args), (n, n)),
+        ("force", system.force, lambda: jax.eval_shape(system.force, t_struct, *state, args), (n,)),
+    ):
+        if function is None:
+            continue
+        signature = f"{name}({'t, ' if name == 'force' else ''}{arguments}, args)"
+        struct = call()
+        if getattr(struct, "shape", None) != shape:
+            raise ValueError(f"{signature} must return shape {shape}, got {getattr(struct, 'shape', struct)}.")
+        if struct.dtype != dtype:
+            raise ValueError(f"{signature} must return the state's dtype {dtype}, got {struct.dtype}.")
+
+
+def dissipation_result(matrix: Float[Array, "n n"]) -> RESULTS:
+    """`RESULTS.dissipation_not_positive_semidefinite` unless `matrix` is symmetric and
+    positive semidefinite to 100 eps relative to its largest entry."""
+    scale = 1 + jnp.max(jnp.abs(matrix))
+    tolerance = 100 * jnp.finfo(matrix.dtype).eps * scale
+    symmetric = jnp.max(jnp.abs(matrix - matrix.T)) <= tolerance
+    smallest = jnp.min(jnp.linalg.eigvalsh(0.5 * (matrix + matrix.T)))
+    return RESULTS.where(symmetric & (smallest >= -tolerance), RESULTS.successful, RESULTS.dissipation_not_positive_semidefinite)
+
+
 def require_scalar(name: str, struct) -> None:
     if getattr(struct, "shape", None) != ():
         raise ValueError(
@@ -83,30 +128,55 @@ def require_scalar(name: str, struct) -> None:
 
 
 class SkewGradientSystem(AbstractSystem):
-    r"""The skew-gradient system $\dot x = \Pi(x) \nabla H(x)$ of eq. (dynamical).
+    r"""The skew-gradient system $\dot x = \Pi(x) \nabla H(x)$ of eq. (dynamical), or,
+    with a dissipation and a force, the port-Hamiltonian form
+
+    $$\dot x = (\Pi(x) - R(x))\nabla H(x) + g(t, x)$$
+
+    (Celledoni & Høiseth, "Energy-preserving and passivity-consistent numerical
+    discretization of port-Hamiltonian systems", arXiv:1706.08621), whose energy
+    balance is $\dot H = \nabla H^Tg - \nabla H^TR\nabla H$ (`power`).
 
     **Arguments:**
 
-    - `hamiltonian`: `hamiltonian(x, args) -> scalar`, the first integral $H$.
+    - `hamiltonian`: `hamiltonian(x, args) -> scalar`, the energy $H$.
     - `structure`: `structure(x, args) -> (N, N)` skew-symmetric matrix $\Pi(x)$.
+    - `dissipation`: `None`, or `dissipation(x, args) -> (N, N)`, $R(x)$, symmetric
+        positive semidefinite.
+    - `force`: `None`, or `force(t, x, args) -> (N,)`, $g(t, x)$.
 
     The state is a flat array `x` of shape `(N,)`. $\nabla H$ comes from autodiff.
-    Skew-symmetry of $\Pi$ is what makes $H$ conserved; it is checked at the initial
-    state (to `100 eps (1 + max|Pi|)`) by `nhjax.integrate`.
+    Skew-symmetry of $\Pi$ is what makes $H$ conserved without $R$ and $g$; it is checked
+    at the initial state (to `100 eps (1 + max|Pi|)`) by `nhjax.integrate`, and so is
+    $R$ (symmetric positive semidefinite to `100 eps (1 + max|R|)`).
     """
 
     hamiltonian: Callable[[Float[Array, " N"], Any], Float[Array, ""]]
     structure: Callable[[Float[Array, " N"], Any], Float[Array, "N N"]]
+    dissipation: Callable[[Float[Array, " N"], Any], Float[Array, "N N"]] | None = None
+    force: Callable[[Any, Float[Array, " N"], Any], Float[Array, " N"]] | None = None
 
     def gradient(self, x: Float[Array, " N"], args: Any) -> Float[Array, " N"]:
         return jax.grad(self.hamiltonian)(x, args)
 
     def vf(self, t, y, args):
-        del t
-        return self.structure(y, args) @ self.gradient(y, args)
+        gradient = self.gradient(y, args)
+        field = self.structure(y, args) @ gradient
+        if self.dissipation is not None:
+            field = field - self.dissipation(y, args) @ gradient
+        if self.force is not None:
+            field = field + self.force(t, y, args)
+        return field
 
     def energy(self, y, args):
         return self.hamiltonian(y, args)
+
+    def power(self, t, y, args):
+        gradient = self.gradient(y, args)
+        zero = jnp.zeros((), gradient.dtype)
+        supplied = zero if self.force is None else gradient @ self.force(t, y, args)
+        dissipated = zero if self.dissipation is None else gradient @ self.dissipation(y, args) @ gradient
+        return supplied, dissipated
 
     def check_shapes(self, y0, args):
         require_floating_vector("The state of a SkewGradientSystem", y0)
@@ -118,6 +188,8 @@ class SkewGradientSystem(AbstractSystem):
                 f"structure(x, args) must return an ({n}, {n}) matrix for a state of "
                 f"shape ({n},), got shape {structure.shape}."
             )
+        t_struct = jax.ShapeDtypeStruct((), jnp.result_type(y0))
+        check_dissipation_and_force(self, t_struct, (y0,), args, n, "x")
 
     def initial_state_result(self, y0, args):
         structure = self.structure(y0, args)
@@ -128,8 +200,14 @@ class SkewGradientSystem(AbstractSystem):
         )
         asymmetry = jnp.max(jnp.abs(structure + structure.T))
         tolerance = 100 * jnp.finfo(structure.dtype).eps * (1 + jnp.max(jnp.abs(structure)))
+        dissipation = RESULTS.successful
+        if self.dissipation is not None:
+            matrix = self.dissipation(y0, args)
+            evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(matrix))
+            dissipation = dissipation_result(matrix)
         return first_failure(
             RESULTS.where(jnp.all(jnp.isfinite(y0)), RESULTS.successful, RESULTS.nonfinite_initial_state),
             RESULTS.where(evaluations_finite, RESULTS.successful, RESULTS.nonfinite_initial_evaluation),
             RESULTS.where(asymmetry <= tolerance, RESULTS.successful, RESULTS.structure_not_skew),
+            dissipation,
         )
