@@ -154,3 +154,37 @@ def test_what_does_not_take_forces_yet_refuses_them():
         nh.integrate(_forced_disk(), nh.GonzalezR(), y0, 0.1, 10, args=DISK.args)
     with pytest.raises(ValueError, match="Projection projects each step onto the initial energy level"):
         nh.integrate_adaptive(_forced_disk(), y0, 1.0, DISK.args, method=nh.Projection(diffrax.Dopri8()))
+
+
+def test_derivatives_with_respect_to_the_force_match_finite_differences():
+    """d(final heading, work)/d(drive torque), the torque a parameter in args, by reverse
+    mode through the adaptive run, against central differences; and a batch under vmap
+    in which one trajectory's dissipation is indefinite: its code, and the others'
+    states equal to their single runs."""
+
+    def drive(t, q, p, args):
+        return jnp.zeros_like(q).at[2].set(args["steer"] * jnp.sin(t)).at[3].set(args["drive"])
+
+    system = nh.NonholonomicSystem(DISK.canonical.hamiltonian, DISK.canonical.constraints, _damping, drive)
+    y0 = DISK.start("canonical")
+
+    def outcome(torque):
+        args = {**DISK.args, "steer": 1.0, "drive": torque}
+        solution = nh.integrate_adaptive(system, y0, 3.0, args, **TIGHT)
+        return solution.ys[0][-1, 2] + solution.work[-1]
+
+    derivative = float(jax.grad(outcome)(0.5))
+    step = 1e-5
+    difference = (float(outcome(0.5 + step)) - float(outcome(0.5 - step))) / (2 * step)
+    assert abs(derivative - difference) <= 1e-7 * max(1.0, abs(difference)), (derivative, difference)
+
+    def run(scale):
+        damped = nh.NonholonomicSystem(
+            DISK.canonical.hamiltonian, DISK.canonical.constraints, lambda q, p, args: scale * _damping(q, p, args), _torques
+        )
+        return nh.integrate_adaptive(damped, y0, 2.0, DISK.args, throw=False, **TIGHT)
+
+    batch = jax.vmap(run)(jnp.array([1.0, -1.0, 2.0]))
+    assert list(batch.result == nh.RESULTS.dissipation_not_positive_semidefinite) == [False, True, False]
+    for index, scale in ((0, 1.0), (2, 2.0)):
+        np.testing.assert_allclose(batch.ys[1][index], run(scale).ys[1], rtol=0, atol=1e-12)
