@@ -136,16 +136,26 @@ def test_bad_dissipation_and_force_are_named():
         nh.integrate_adaptive(_forced_disk(force=lambda t, q, p, args: q[:3]), y0, 1.0, DISK.args)
     with pytest.raises(ValueError, match=r"force\(t, q, p, args\) must return the state's dtype float64, got float32"):
         nh.integrate_adaptive(_forced_disk(force=lambda t, q, p, args: q.astype(jnp.float32)), y0, 1.0, DISK.args)
-    negative = _forced_disk(dissipation=lambda q, p, args: -jnp.eye(4))
-    asymmetric = _forced_disk(dissipation=lambda q, p, args: jnp.eye(4).at[0, 1].set(0.5))
-    for system in (negative, asymmetric):
-        solution = nh.integrate_adaptive(system, y0, 1.0, DISK.args, throw=False)
+    # One system whose D and F come from args, so that the bad cases share one program.
+    configurable = _forced_disk(
+        dissipation=lambda q, p, args: args["D"],
+        force=lambda t, q, p, args: jnp.where(t > args["nan_after"], jnp.nan, 1.0) * jnp.ones_like(q),
+    )
+    good = {**DISK.args, "D": jnp.eye(4), "nan_after": 10.0}
+    negative = {**good, "D": -jnp.eye(4)}
+    asymmetric = {**good, "D": jnp.eye(4).at[0, 1].set(0.5)}
+    assert nh.integrate_adaptive(configurable, y0, 1.0, good, throw=False).result == nh.RESULTS.successful
+    for args in (negative, asymmetric):
+        solution = nh.integrate_adaptive(configurable, y0, 1.0, args, throw=False)
         assert solution.result == nh.RESULTS.dissipation_not_positive_semidefinite
         assert not bool(jnp.any(jnp.isfinite(solution.ys[0][1:])))
         with pytest.raises(RuntimeError, match="not symmetric positive semidefinite"):
-            nh.integrate_adaptive(system, y0, 1.0, DISK.args)
-    nonfinite = _forced_disk(force=lambda t, q, p, args: jnp.where(t > 0.5, jnp.nan, 1.0) * jnp.ones_like(q))
-    assert nh.integrate_adaptive(nonfinite, y0, 1.0, DISK.args, throw=False).result != nh.RESULTS.successful
+            nh.integrate_adaptive(configurable, y0, 1.0, args)
+    # A force that turns NaN mid-run: the adaptive loop stops with a failure, not a
+    # finite-looking end (diffrax's controller spends max_steps on it first).
+    nonfinite = {**good, "nan_after": 0.5}
+    failed = nh.integrate_adaptive(configurable, y0, 1.0, nonfinite, throw=False, max_steps=200)
+    assert failed.result != nh.RESULTS.successful
 
 
 def test_what_does_not_take_forces_yet_refuses_them():
