@@ -517,15 +517,13 @@ def _random_systems() -> list[str]:
 def _start_choice(text: str) -> tuple[str, int | float]:
     """NAME=VALUE, VALUE an integer where it is written as one (a seed), a float otherwise."""
     name, equals, value = text.partition("=")
-    try:
-        if not (equals and name):
-            raise ValueError
-        try:
-            return name, int(value)
-        except ValueError:
-            return name, float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with a number VALUE, got {text!r}") from None
+    if equals and name:
+        for number in (int, float):
+            try:
+                return name, number(value)
+            except ValueError:
+                pass
+    raise argparse.ArgumentTypeError(f"expected NAME=VALUE with a number VALUE, got {text!r}")
 
 
 def _check_start(parser, arguments) -> None:

@@ -22,7 +22,7 @@ from ._reduced import Derivative, ReducedSystem
 from ._system import (
     AbstractSystem,
     check_dissipation_and_force,
-    dissipation_result,
+    dissipation_at_start,
     require_floating_vector,
     require_scalar,
     SkewGradientSystem,
@@ -45,14 +45,10 @@ class _InVelocities(eqx.Module):
 
     function: Callable
     hamiltonian: LegendreHamiltonian
-    timed: bool = eqx.field(static=True)
 
     def __call__(self, *arguments):
-        if self.timed:
-            t, q, p, args = arguments
-            return self.function(t, q, jax.grad(self.hamiltonian, argnums=1)(q, p, args), args)
-        q, p, args = arguments
-        return self.function(q, jax.grad(self.hamiltonian, argnums=1)(q, p, args), args)
+        *time, q, p, args = arguments
+        return self.function(*time, q, jax.grad(self.hamiltonian, argnums=1)(q, p, args), args)
 
 
 class NonholonomicSystem(AbstractSystem):
@@ -137,8 +133,8 @@ class NonholonomicSystem(AbstractSystem):
         return cls(
             hamiltonian,
             constraints,
-            None if dissipation is None else _InVelocities(dissipation, hamiltonian, timed=False),
-            None if force is None else _InVelocities(force, hamiltonian, timed=True),
+            None if dissipation is None else _InVelocities(dissipation, hamiltonian),
+            None if force is None else _InVelocities(force, hamiltonian),
         )
 
     def momentum_from_velocity(self, q, qdot, args) -> Float[Array, " n"]:
@@ -344,8 +340,7 @@ class NonholonomicSystem(AbstractSystem):
                 f"q of shape ({n},), got shape {a.shape}."
             )
         in_velocities = isinstance(self.dissipation or self.force, _InVelocities)
-        t_struct = jax.ShapeDtypeStruct((), jnp.result_type(q))
-        check_dissipation_and_force(self, t_struct, (q, p), args, n, "q, qdot" if in_velocities else "q, p")
+        check_dissipation_and_force(self, (q, p), args, n, "q, qdot" if in_velocities else "q, p")
 
     def initial_state_result(self, y0, args):
         q, p = y0
@@ -355,17 +350,14 @@ class NonholonomicSystem(AbstractSystem):
         violation = jnp.max(jnp.abs(a @ v))
         satisfied = violation <= _tolerance(q.dtype, jnp.max(jnp.abs(a)) * jnp.max(jnp.abs(v)))
         grad_q, grad_p = jax.grad(self.hamiltonian, argnums=(0, 1))(q, p, args)
+        dissipation_finite, dissipation = dissipation_at_start(self.dissipation, (q, p), args)
         evaluations_finite = (
             jnp.isfinite(self.hamiltonian(q, p, args))
             & jnp.all(jnp.isfinite(grad_q))
             & jnp.all(jnp.isfinite(grad_p))
             & jnp.all(jnp.isfinite(a))
+            & dissipation_finite
         )
-        dissipation = RESULTS.successful
-        if self.dissipation is not None:
-            matrix = self.dissipation(q, p, args)
-            evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(matrix))
-            dissipation = dissipation_result(matrix)
         return first_failure(
             RESULTS.where(finite, RESULTS.successful, RESULTS.nonfinite_initial_state),
             # Before the Hamiltonian's checks: a Lagrangian of the wrong type is what the

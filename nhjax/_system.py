@@ -91,33 +91,41 @@ def require_floating_vector(name: str, x) -> None:
         raise ValueError(f"{name} must be floating point, got dtype {jnp.result_type(x)}.")
 
 
-def check_dissipation_and_force(system, t_struct, state, args, n: int, arguments: str) -> None:
+def check_dissipation_and_force(system, state, args, n: int, arguments: str) -> None:
     """Shapes and dtypes of a system's `dissipation` (an (n, n) matrix) and `force` (an
-    (n,) vector), from `dissipation(*state, args)` and `force(t, *state, args)`; a
-    `ValueError` naming the problem."""
+    (n,) vector), from `dissipation(*state, args)` and `force(t, *state, args)`, the
+    time a scalar of the state's dtype; a `ValueError` naming the problem."""
     dtype = jnp.result_type(*jax.tree.leaves(state))
-    for name, function, call, shape in (
-        ("dissipation", system.dissipation, lambda: jax.eval_shape(system.dissipation, *state, args), (n, n)),
-        ("force", system.force, lambda: jax.eval_shape(system.force, t_struct, *state, args), (n,)),
+    time = jax.ShapeDtypeStruct((), dtype)
+    for name, function, leading, shape in (
+        ("dissipation", system.dissipation, (), (n, n)),
+        ("force", system.force, (time,), (n,)),
     ):
         if function is None:
             continue
-        signature = f"{name}({'t, ' if name == 'force' else ''}{arguments}, args)"
-        struct = call()
+        signature = f"{name}({'t, ' * len(leading)}{arguments}, args)"
+        struct = jax.eval_shape(function, *leading, *state, args)
         if getattr(struct, "shape", None) != shape:
             raise ValueError(f"{signature} must return shape {shape}, got {getattr(struct, 'shape', struct)}.")
         if struct.dtype != dtype:
             raise ValueError(f"{signature} must return the state's dtype {dtype}, got {struct.dtype}.")
 
 
-def dissipation_result(matrix: Float[Array, "n n"]) -> RESULTS:
-    """`RESULTS.dissipation_not_positive_semidefinite` unless `matrix` is symmetric and
-    positive semidefinite to 100 eps relative to its largest entry."""
-    scale = 1 + jnp.max(jnp.abs(matrix))
-    tolerance = 100 * jnp.finfo(matrix.dtype).eps * scale
+def dissipation_at_start(dissipation, state, args) -> tuple[Array, RESULTS]:
+    """Whether `dissipation(*state, args)` is finite, and
+    `RESULTS.dissipation_not_positive_semidefinite` unless it is symmetric and positive
+    semidefinite to 100 eps relative to its largest entry; `(True, success)` for a
+    system without a dissipation."""
+    if dissipation is None:
+        return jnp.array(True), RESULTS.successful
+    matrix = dissipation(*state, args)
+    tolerance = 100 * jnp.finfo(matrix.dtype).eps * (1 + jnp.max(jnp.abs(matrix)))
     symmetric = jnp.max(jnp.abs(matrix - matrix.T)) <= tolerance
     smallest = jnp.min(jnp.linalg.eigvalsh(0.5 * (matrix + matrix.T)))
-    return RESULTS.where(symmetric & (smallest >= -tolerance), RESULTS.successful, RESULTS.dissipation_not_positive_semidefinite)
+    semidefinite = RESULTS.where(
+        symmetric & (smallest >= -tolerance), RESULTS.successful, RESULTS.dissipation_not_positive_semidefinite
+    )
+    return jnp.all(jnp.isfinite(matrix)), semidefinite
 
 
 def require_scalar(name: str, struct) -> None:
@@ -188,23 +196,19 @@ class SkewGradientSystem(AbstractSystem):
                 f"structure(x, args) must return an ({n}, {n}) matrix for a state of "
                 f"shape ({n},), got shape {structure.shape}."
             )
-        t_struct = jax.ShapeDtypeStruct((), jnp.result_type(y0))
-        check_dissipation_and_force(self, t_struct, (y0,), args, n, "x")
+        check_dissipation_and_force(self, (y0,), args, n, "x")
 
     def initial_state_result(self, y0, args):
         structure = self.structure(y0, args)
+        dissipation_finite, dissipation = dissipation_at_start(self.dissipation, (y0,), args)
         evaluations_finite = (
             jnp.isfinite(self.hamiltonian(y0, args))
             & jnp.all(jnp.isfinite(self.gradient(y0, args)))
             & jnp.all(jnp.isfinite(structure))
+            & dissipation_finite
         )
         asymmetry = jnp.max(jnp.abs(structure + structure.T))
         tolerance = 100 * jnp.finfo(structure.dtype).eps * (1 + jnp.max(jnp.abs(structure)))
-        dissipation = RESULTS.successful
-        if self.dissipation is not None:
-            matrix = self.dissipation(y0, args)
-            evaluations_finite = evaluations_finite & jnp.all(jnp.isfinite(matrix))
-            dissipation = dissipation_result(matrix)
         return first_failure(
             RESULTS.where(jnp.all(jnp.isfinite(y0)), RESULTS.successful, RESULTS.nonfinite_initial_state),
             RESULTS.where(evaluations_finite, RESULTS.successful, RESULTS.nonfinite_initial_evaluation),
