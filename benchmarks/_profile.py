@@ -40,12 +40,12 @@ def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int
     setup + chord_matrix + iterations x residual + complete. For a method with its own
     `chord_jacobian`, `chord_matrix_by_jacfwd` is the generic `jax.jacfwd` it replaces."""
     carry = method.initial_carry(system, y0, args)
-    guess, data = method.setup(system, h, y0, args, carry)
+    guess, data = method.setup(system, 0.0, h, y0, args, carry)
     q_or_x = jax.tree.leaves(y0)[0]
 
     def setup(offset):
         shifted = jax.tree.map(lambda leaf: leaf + offset[0], y0)
-        return method.setup(system, h, shifted, args, carry)[0]
+        return method.setup(system, 0.0, h, shifted, args, carry)[0]
 
     parts = dict(
         setup=per_call_us(setup, jnp.zeros((1,), q_or_x.dtype), repeats),

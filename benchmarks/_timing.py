@@ -81,10 +81,12 @@ def bare_loop_per_step(system, method, y0, steps, repeats, args=None, dt=0.1) ->
 
     def run(y0):
         state = method.init(system, 0.0, dt, y0, args)
+        h = jnp.asarray(dt, jax.tree.leaves(y0)[0].dtype)
 
         def step(carry, _):
             y, state = carry
-            y, state, _ = method.advance(system, jnp.asarray(dt, jax.tree.leaves(y0)[0].dtype), y, args, state)
+            # Conservative systems: the step's time is not read.
+            y, state, _ = method.advance(system, jnp.zeros_like(h), h, y, args, state)
             return (y, state), None
 
         return jax.lax.scan(step, (y0, state), None, length=steps)[0][0]

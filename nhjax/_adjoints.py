@@ -5,6 +5,7 @@ otherwise."""
 import diffrax
 import jax
 
+from ._ledger import run_start
 from ._replay import replay_storage_bytes, tree_bytes
 from ._solver.base import AbstractMethod
 
@@ -36,6 +37,7 @@ def default_adjoint(system, method, y0, args, dt, n_steps: int) -> diffrax.Recur
     the transpose of its linearisation; with $c < n$ checkpoints it first recomputes
     steps from the nearest checkpoint, $O(n\log n)$ steps in all for $c = O(\log n)$.
     `python benchmarks/gradients.py` measures them against the forward run."""
+    y0 = run_start(system, y0)
     solver_state = jax.eval_shape(lambda: method.init(system, 0 * dt, dt, y0, args))
     if n_steps * tree_bytes((y0, solver_state)) <= CHECKPOINT_BUDGET_BYTES:
         return diffrax.RecursiveCheckpointAdjoint(checkpoints=n_steps)

@@ -65,12 +65,17 @@ def failures(codes) -> str:
     return "".join(lines) + "\n"
 
 
+# A forced run's ledger: each chunk's counts from its own start.
+_LEDGER = ("work", "dissipated")
+
+
 def chunk_arrays(solution, *, keep_first, time_axis) -> dict[str, np.ndarray]:
     """A chunk's saves (without the first unless `keep_first`) and stats, as NumPy."""
     saves = dict(ts=solution.ts, energy=solution.energy)
     saves.update({f"y_{i}": leaf for i, leaf in enumerate(jax.tree.leaves(solution.ys))})
-    if solution.constraint is not None:
-        saves["constraint"] = solution.constraint
+    for name in ("constraint",) + _LEDGER:
+        if getattr(solution, name) is not None:
+            saves[name] = getattr(solution, name)
     start = 0 if keep_first else 1
     chunk = {
         name: np.take(np.asarray(array), np.arange(start, array.shape[time_axis]), axis=time_axis)
@@ -146,13 +151,23 @@ def load_verified(path: pathlib.Path, identity: dict, expected_saves: int, time_
 
 
 def join_chunks(chunks, treedef, n_saved, time_axis) -> Solution:
-    def joined(name):
-        array = np.concatenate([chunk[name] for chunk in chunks], axis=time_axis)
+    def joined(name, parts=None):
+        parts = [chunk[name] for chunk in chunks] if parts is None else parts
+        array = np.concatenate(parts, axis=time_axis)
         missing = n_saved - array.shape[time_axis]
         if missing:  # a single trajectory that stopped at a failed chunk
             padding = np.full((missing, *array.shape[1:]), np.nan, dtype=array.dtype)
             array = np.concatenate([array, padding])
         return jnp.asarray(array)
+
+    def summed(name):
+        """A ledger entry of the whole run: each chunk's, counted from its own start,
+        plus what the chunks before it ended with."""
+        offset, parts = 0.0, []
+        for chunk in chunks:
+            parts.append(chunk[name] + offset)
+            offset = np.expand_dims(np.take(parts[-1], -1, axis=time_axis), time_axis)
+        return joined(name, parts)
 
     result = chunks[0]["result"]
     for chunk in chunks[1:]:
@@ -183,6 +198,7 @@ def join_chunks(chunks, treedef, n_saved, time_axis) -> Solution:
         constraint=joined("constraint") if "constraint" in chunks[0] else None,
         result=_result(result),
         stats=stats,
+        **{name: summed(name) if name in chunks[0] else None for name in _LEDGER},
     )
 
 

@@ -36,7 +36,8 @@ from ._adjoints import checked_adjoint, default_adjoint, replays_derivatives
 from ._arguments import args_result, check_args, check_step_counts, check_step_size, in_state_dtype, state_dtype, trace_floats
 from ._replay import replayed_run
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
-from ._solution import method_outcome, nonfinite_saves, raise_failure, save_observables, Solution, solution_from_saves
+from ._ledger import observe, run_start
+from ._solution import method_outcome, nonfinite_saves, raise_failure, Solution, solution_from_saves
 from ._solver.base import AbstractMethod
 from ._step_times import FixedStepTimes
 from ._system import AbstractSystem
@@ -133,12 +134,6 @@ def integrate(
     check_step_size(dt, t0)
     check_args(args)
     system.check_shapes(y0, args)
-    if system.is_forced():
-        raise ValueError(
-            f"nhjax.integrate does not take a system with a force or a dissipation yet (with "
-            f"{type(method).__name__} or any other method): nhjax.integrate_adaptive does, and reports "
-            "the energy balance (Solution.work, Solution.dissipated)."
-        )
     dtype = state_dtype(y0)
     dt, t0 = jnp.asarray(dt, dtype=dtype), jnp.asarray(t0, dtype=dtype)
     solution = _integrate(
@@ -259,7 +254,7 @@ def _diffrax_run(system, method, y_start, dt, t0, args, n_steps, *, adjoint, max
         y0=y_start,
         args=args,
         # t1=True: the final state of a run whose n_steps save_every does not divide.
-        saveat=diffrax.SaveAt(t0=True, steps=save_every, t1=True, fn=save_observables(system), solver_state=True),
+        saveat=diffrax.SaveAt(t0=True, steps=save_every, t1=True, fn=observe(system), solver_state=True),
         stepsize_controller=FixedStepTimes(t0, dt),
         max_steps=max_steps,
         adjoint=adjoint,
@@ -322,7 +317,7 @@ def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_s
         RESULTS.where(waived, RESULTS.successful, state_result),
     )
     startable = initial_result == RESULTS.successful
-    y_start = nan_where_failed(~startable, y0, y0)
+    y_start = run_start(system, nan_where_failed(~startable, y0, y0))
 
     ts, saved, solver_state, run_result, steps_taken = run(system, method, y_start, safe_dt, t0, args, n_steps)
     ts, saved = _held_after_the_end(ts, saved, n_steps, steps_taken, run_result, save_every=save_every)

@@ -13,7 +13,8 @@ from jaxtyping import Array, Float, PyTree
 from ._adjoints import adjoint_or_default
 from ._arguments import args_result, check_args, check_save_times, default_tolerance, in_state_dtype, state_dtype, trace_floats
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
-from ._solution import EnergyLedger, method_outcome, raise_failure, save_observables, Solution, solution_from_saves
+from ._ledger import observe, run_start
+from ._solution import method_outcome, raise_failure, Solution, solution_from_saves
 from ._solver.projection import Projection
 from ._system import AbstractSystem, is_int
 
@@ -60,8 +61,8 @@ def integrate_adaptive(
     `num_rejected_steps`, and for a `Projection` its iteration counts. For a system with
     a force or a dissipation, the work and the dissipated energy are integrated with the
     state by the same solver (`Solution.work`, `Solution.dissipated`), and the step-size
-    controller weighs them with the state; `nhjax.Projection`, which projects onto the
-    initial energy level, refuses such a system.
+    controller weighs them with the state; `nhjax.Projection` then projects onto the
+    energy balance.
     """
     if solver is not None:
         if method is not None:
@@ -72,12 +73,6 @@ def integrate_adaptive(
             stacklevel=2,
         )
         method = solver
-    if system.is_forced() and isinstance(method, Projection):
-        raise ValueError(
-            "nhjax.Projection projects each step onto the initial energy level, which a system with a "
-            "force or a dissipation leaves: it does not take forced systems. Use the plain diffrax solver "
-            "(the default Dopri8), whose Solution reports the energy balance (work, dissipated)."
-        )
     if not is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
     system.check_shapes(y0, args)
@@ -139,21 +134,17 @@ def _integrate_adaptive(system, solver, y0, t0, t1, save_at, args, adjoint, rtol
         # does not: every saved time is made a step end.
         controller = diffrax.ClipStepSizeController(controller, step_ts=save_at)
 
-    if system.is_forced():
-        # The work and the dissipated energy integrated with the state.
-        ledger = EnergyLedger(system)
-        term, start, save = diffrax.ODETerm(ledger.vf), (y_start, jnp.zeros(2, t0.dtype)), ledger.save
-    else:
-        term, start, save = system, y_start, save_observables(system)
+    # A forced system's work and dissipated energy are integrated with the state
+    # (`nhjax._ledger`).
     solution = diffrax.diffeqsolve(
-        term,
+        system,
         solver,
         t0=t0,
         t1=t_end,
         dt0=None,
-        y0=start,
+        y0=run_start(system, y_start),
         args=args,
-        saveat=diffrax.SaveAt(ts=jnp.where(cannot_start, t0, save_at), fn=save, solver_state=True),
+        saveat=diffrax.SaveAt(ts=jnp.where(cannot_start, t0, save_at), fn=observe(system), solver_state=True),
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,

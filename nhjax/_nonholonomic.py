@@ -195,12 +195,13 @@ class NonholonomicSystem(AbstractSystem):
         ka_t = self.inverse_metric(q, args) @ a.T
         return solve_spd(a @ ka_t, ka_t.T @ force - drift)
 
-    def applied_force(self, t, q, p, args) -> Float[Array, " n"] | None:
+    def applied_force(self, t, q, p, args, velocity=None) -> Float[Array, " n"] | None:
         r"""$-D(q, p)\,v + F(t, q, p)$, the force of the dissipation and the force on the
-        system; `None` for a conservative system."""
+        system, with $v = \partial_pH(q, p)$ or a method's discrete `velocity`; `None`
+        for a conservative system."""
         if not self.is_forced():
             return None
-        v = self.velocity(q, p, args)
+        v = self.velocity(q, p, args) if velocity is None else velocity
         applied = jnp.zeros_like(v)
         if self.dissipation is not None:
             applied = applied - self.dissipation(q, p, args) @ v
@@ -208,7 +209,7 @@ class NonholonomicSystem(AbstractSystem):
             applied = applied + self.force(t, q, p, args)
         return applied
 
-    def vf(self, t, y, args):
+    def field(self, t, y, args):
         q, p = y
         force = -jax.grad(self.hamiltonian, argnums=0)(q, p, args)
         applied = self.applied_force(t, q, p, args)
@@ -219,10 +220,15 @@ class NonholonomicSystem(AbstractSystem):
 
     def power(self, t, y, args):
         q, p = y
-        v = self.velocity(q, p, args)
-        zero = jnp.zeros((), v.dtype)
-        supplied = zero if self.force is None else v @ self.force(t, q, p, args)
-        dissipated = zero if self.dissipation is None else v @ self.dissipation(q, p, args) @ v
+        return self.power_along(t, q, p, self.velocity(q, p, args), args)
+
+    def power_along(self, t, q, p, velocity, args) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        r"""(supplied, dissipated) $= (v^TF(t, q, p),\ v^TD(q, p)v)$ for a velocity $v$:
+        `power` at $v = \partial_pH$, and a method's discrete power at its discrete
+        velocity (times the step, its `exchange`)."""
+        zero = jnp.zeros((), velocity.dtype)
+        supplied = zero if self.force is None else velocity @ self.force(t, q, p, args)
+        dissipated = zero if self.dissipation is None else velocity @ self.dissipation(q, p, args) @ velocity
         return supplied, dissipated
 
     def energy(self, y, args):

@@ -331,6 +331,27 @@ class ReducedSystem(eqx.Module):
         along_frame = self.frame(q, args).transpose_times(self.system.force(t, q, p, args))
         return jnp.concatenate([jnp.zeros_like(q), along_frame])
 
-    def vector_field(self, zeta, args) -> Float[Array, " N"]:
-        r"""$\dot\zeta = \Pi(\zeta)\nabla\mathcal{H}(\zeta)$."""
-        return self.at(zeta, args).field()
+    def vector_field(self, zeta, args, t=0.0) -> Float[Array, " N"]:
+        r"""$\dot\zeta = \Pi(\zeta)\nabla\mathcal{H}(\zeta)$, plus the applied force in the
+        frame (`with_applied_force`, at time `t`) where the system has one."""
+        point = self.at(zeta, args)
+        return self.with_applied_force(t, zeta, point, point.gradient, point.field(), args)[0]
+
+    def with_applied_force(
+        self, t, zeta, point: ReducedPoint, gradient: Float[Array, " N"], field: Float[Array, " N"], args
+    ) -> tuple[Float[Array, " N"], tuple[Array, Array] | None]:
+        r"""`field` plus $(0, X^T(F - Dv))$ with $v = X\,\text{gradient}_\rho$, the
+        velocity of the gradient's $\rho$-part, and $X$, $p$, $D$, $F$ at `point`
+        ($\zeta$) and time `t`: the force and the damping act on the $\rho$-rows only,
+        so the $q$-update stays in $\mathcal{D}$ and the constraint holds as without
+        them. Also their power along $v$, (supplied, dissipated)
+        (`NonholonomicSystem.power_along`); `field` and `None` for a conservative
+        system."""
+        if not self.system.is_forced():
+            return field, None
+        q, _ = split_reduced(zeta, self.signs)
+        n = q.shape[0]
+        velocity = point.frame.times(gradient[n:])
+        applied = self.system.applied_force(t, q, point.momentum, args, velocity)
+        field = field.at[n:].add(point.frame.transpose_times(applied))
+        return field, self.system.power_along(t, q, point.momentum, velocity, args)

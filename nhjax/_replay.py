@@ -35,6 +35,7 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 
+from ._ledger import observe, unledgered
 from ._results import RESULTS
 from ._solver.base import AbstractMethod
 from ._system import AbstractSystem
@@ -62,8 +63,9 @@ def _first_carry_and_unknowns(system, method, y0, dt, args):
     """The carry and the initial guess of a run's first step: the guess has the shape
     of every step's root. Traced for shapes only, and cheaper to trace than a whole
     step (no root find)."""
+    y0 = unledgered(y0)
     carry = method.initial_carry(system, y0, args)
-    return carry, method.setup(system, dt, y0, args, carry)[0]
+    return carry, method.setup(system, jnp.zeros_like(dt), dt, y0, args, carry)[0]
 
 
 def _step_time(t0, dt, k):
@@ -91,7 +93,7 @@ def _record(system, method, y_start, dt, t0, args, n_steps, max_steps):
         running = (state.failure == RESULTS.successful) & (k < n_steps)
 
         def take(_):
-            y1, state1, failure, root = method.solve_step(system, h, y, args, state)
+            y1, state1, failure, root = method.solve_step(system, _step_time(t0, dt, k), h, y, args, state)
             failed = failure != RESULTS.successful
             y1 = jax.tree.map(lambda x: jnp.where(failed, jnp.nan, x), y1)
             return (y1, state1), (root, ~failed)
@@ -118,29 +120,31 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
     skipped step's NaN root would give the discarded branch NaN derivatives, which
     reverse mode multiplies by the zero cotangent of the branch not taken (under
     `vmap`, where the steps of a batch end at different `n_steps`)."""
-    carry = method.initial_carry(system, y_start, args)
+    carry = method.initial_carry(system, unledgered(y_start), args)
     n_saves = roots.shape[0] // save_every
+    save = observe(system)
 
     @jax.checkpoint
     def step(state, inputs):
         y, carry, last = state
         k, root, success = inputs
         if isinstance(n_steps, int):  # static: every step is in the run
-            y1, carry1 = method.replay_step(system, _step_size(t0, dt, k), y, args, carry, root)
+            y1, carry1 = method.replay_step(system, _step_time(t0, dt, k), _step_size(t0, dt, k), y, args, carry, root)
             y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
             return (y1, carry1, last), None
         in_run = k < n_steps
         replayed = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y, carry, root, k), last)
         y_k, carry_k, root_k, index = replayed
-        y1, carry1 = method.replay_step(system, _step_size(t0, dt, index), y_k, args, carry_k, root_k)
+        y1, carry1 = method.replay_step(
+            system, _step_time(t0, dt, index), _step_size(t0, dt, index), y_k, args, carry_k, root_k
+        )
         y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
         y1, carry1 = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y1, carry1), (y, carry))
         return (y1, carry1, replayed), None
 
     def between_saves(state, inputs):
         state, _ = lax.scan(step, state, inputs)
-        y = state[0]
-        return state, (y, system.observables(y, args))
+        return state, save(None, state[0], args)
 
     blocks = jax.tree.map(
         lambda x: x.reshape(n_saves, save_every, *x.shape[1:]),
@@ -148,7 +152,7 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
     )
     first_step = None if isinstance(n_steps, int) else (y_start, carry, roots[0], jnp.array(0))
     _, (ys, observed) = lax.scan(between_saves, (y_start, carry, first_step), blocks)
-    first = jax.tree.map(lambda x: x[None], (y_start, system.observables(y_start, args)))
+    first = jax.tree.map(lambda x: x[None], save(None, y_start, args))
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
 
 

@@ -59,7 +59,9 @@ def run_chunked(
     Chunk $c$ takes the steps $cN_c$ to $\min((c + 1)N_c, N)$ from
     $t_0 = cN_c h$, starting from the last state of chunk $c - 1$. When it finishes,
     `directory/chunk_0000c.npz` receives its saves (`ts`, the leaves of `ys` as
-    `y_0, y_1, ...`, `energy`, `constraint`, `result`, and the `stats` as `stats_*`),
+    `y_0, y_1, ...`, `energy`, `constraint`, for a forced system `work` and
+    `dissipated` counted from the chunk's start, `result`, and the `stats` as
+    `stats_*`),
     written to a temporary file and renamed, so that a chunk file that exists is
     complete. Each chunk file also records what identifies it: the run's fingerprint
     (a hash of the manifest below), its index and step range, a fingerprint of the state
@@ -89,7 +91,8 @@ def run_chunked(
     state $(q, p)$: solver state (such as a root finder's starting guess) is not carried
     across a boundary. So a chunked run is bit-for-bit the same as any other chunked
     run with the same `chunk_steps`, interrupted or not, and equals an unchunked
-    `nhjax.integrate` run to roundoff only.
+    `nhjax.integrate` run to roundoff only. A forced run's ledger restarts at each
+    boundary and is summed across them when the chunks are joined.
 
     **Compilation.** One program runs every full chunk (`y0` and the chunk's `t0` are
     traced); a shorter last chunk compiles a second one. The default `chunk_steps` is

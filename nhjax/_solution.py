@@ -52,33 +52,6 @@ class Solution(eqx.Module):
     dissipated: Float[Array, " n_saved"] | None = None
 
 
-def save_observables(system):
-    """The `SaveAt.fn` of both loops: the state and the system's observables."""
-
-    def save(t, y, args):
-        del t
-        return y, system.observables(y, args)
-
-    return save
-
-
-class EnergyLedger(eqx.Module):
-    r"""A forced system's vector field with its energy ledger beside the state: the
-    state $(y, w, d)$, with $\dot w$ and $\dot d$ the power supplied by the force and
-    removed by the dissipation (`AbstractSystem.power`), so that a diffrax solver
-    integrates the work and the dissipated energy with the state, to its own order."""
-
-    system: AbstractSystem
-
-    def vf(self, t, state, args):
-        y, _ = state
-        return self.system.vf(t, y, args), jnp.stack(self.system.power(t, y, args))
-
-    def save(self, t, state, args):
-        y, ledger = state
-        return y, {**self.system.observables(y, args), "work": ledger[0], "dissipated": ledger[1]}
-
-
 def solution_from_saves(ts, saved, result: RESULTS, stats, sources) -> Solution:
     """The `Solution` from diffrax's saves.
 

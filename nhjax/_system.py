@@ -17,13 +17,27 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._ledger import Ledgered
 from ._results import first_failure, RESULTS
 
 
 class AbstractSystem(diffrax.AbstractTerm):
     """A system: a diffrax term with an energy and an initial-state check; conservative
     unless it has a dissipation or a force (`is_forced`), whose power it then reports
-    (`power`)."""
+    (`power`). Its vector field is `field`; `vf`, diffrax's name for it, also takes a
+    forced run's state with its energy ledger (`nhjax._ledger.Ledgered`)."""
+
+    @abc.abstractmethod
+    def field(self, t, y, args: Any):
+        r"""The vector field $\dot y$ at time `t` and state `y`."""
+
+    def vf(self, t, y, args):
+        """`field`; on a forced run's `Ledgered` state, the field and the rates of the
+        ledger, the power supplied and dissipated (`power`), so that a diffrax solver
+        integrates the work and the dissipated energy with the state."""
+        if isinstance(y, Ledgered):
+            return Ledgered(self.field(t, y.state, args), *self.power(t, y.state, args))
+        return self.field(t, y, args)
 
     @abc.abstractmethod
     def energy(self, y, args: Any) -> Float[Array, ""]:
@@ -167,7 +181,7 @@ class SkewGradientSystem(AbstractSystem):
     def gradient(self, x: Float[Array, " N"], args: Any) -> Float[Array, " N"]:
         return jax.grad(self.hamiltonian)(x, args)
 
-    def vf(self, t, y, args):
+    def field(self, t, y, args):
         gradient = self.gradient(y, args)
         field = self.structure(y, args) @ gradient
         if self.dissipation is not None:

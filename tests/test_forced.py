@@ -1,6 +1,6 @@
 """Systems with a dissipation and a force: their equations, energy balance and input
-checks (the reference route, `integrate_adaptive`; the fixed-step methods refuse them
-for now)."""
+checks along the reference route, `integrate_adaptive` (the fixed-step methods with
+them: `tests/test_forced_methods.py`)."""
 
 import diffrax
 import jax
@@ -158,12 +158,15 @@ def test_bad_dissipation_and_force_are_named():
     assert failed.result != nh.RESULTS.successful
 
 
-def test_what_does_not_take_forces_yet_refuses_them():
+def test_projection_outside_a_run_refuses_a_forced_system():
+    """A forced system's initial energy level is not an invariant: Projection needs the
+    run's ledger to project onto the balance, and says so when diffrax is called
+    without it."""
     y0 = DISK.start("canonical")
-    with pytest.raises(ValueError, match="nhjax.integrate does not take a system with a force or a dissipation yet"):
-        nh.integrate(_forced_disk(), nh.GonzalezR(), y0, 0.1, 10, args=DISK.args)
-    with pytest.raises(ValueError, match="Projection projects each step onto the initial energy level"):
-        nh.integrate_adaptive(_forced_disk(), y0, 1.0, DISK.args, method=nh.Projection(diffrax.Dopri8()))
+    with pytest.raises(ValueError, match="projects onto the energy balance"):
+        diffrax.diffeqsolve(
+            _forced_disk(), nh.Projection(diffrax.Dopri8()), 0.0, 1.0, 0.1, y0, DISK.args
+        )
 
 
 def test_derivatives_with_respect_to_the_force_match_finite_differences():

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, PyTree, Scalar
 
+from .._ledger import Ledgered, unledgered
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
 from .chord import chord_inverse, ChordSolution, PresetChord
@@ -200,8 +201,9 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     A method says how a step is posed and what its root gives:
 
-    - `setup(system, h, y0, args, carry) -> (guess, data)`: the initial guess for the
-      unknowns (a 1-D array) and everything the residual needs;
+    - `setup(system, t, h, y0, args, carry) -> (guess, data)`: for the step from time
+      `t` to `t + h`, the initial guess for the unknowns (a 1-D array) and everything
+      the residual needs;
     - `residual(unknowns, data)`, whose root is the step, and
       `root_find_residual(unknowns, data)`, the same values computed without what only
       the residual's derivatives need (by default the residual itself): the chord
@@ -218,8 +220,10 @@ class AbstractMethod(diffrax.AbstractSolver):
     Subclasses set `root_finder` (`None`: `default_root_finder` for the state's dtype)
     and `root_find_max_steps`, and say whether the method is symmetric
     (`is_symmetric`, `adjoint`, `composition_obstacle`: what `nhjax.Composition`
-    needs). `advance(system, h, y0, args, state)` takes one step of signed size `h`;
-    `step` is diffrax's interface to it.
+    needs). `advance(system, t, h, y0, args, state)` takes one step of signed size `h`
+    from time `t`; `step` is diffrax's interface to it. A forced run's states carry
+    their energy ledger (`nhjax._ledger.Ledgered`): `advance` and `replay_step` step
+    the state and add the step's `exchange` to the ledger.
     """
 
     interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
@@ -236,9 +240,15 @@ class AbstractMethod(diffrax.AbstractSolver):
         return None
 
     def setup(
-        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, carry: PyTree
+        self, system: AbstractSystem, t: Scalar, h: Scalar, y0: PyTree[Array], args: PyTree, carry: PyTree
     ) -> tuple[Float[Array, " u"], Any]:
         raise NotImplementedError
+
+    def exchange(self, unknowns: Float[Array, " u"], data: Any) -> tuple[Array, Array]:
+        raise ValueError(
+            f"{type(self).__name__} does not take a system with a force or a dissipation: it "
+            "has no discrete energy exchange (AbstractMethod.exchange)."
+        )
 
     def residual(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, " u"]:
         raise NotImplementedError
@@ -280,7 +290,7 @@ class AbstractMethod(diffrax.AbstractSolver):
     def init(self, terms, t0, t1, y0, args) -> MethodState:
         system, _ = self.system_and_step(terms, t0, t1)
         zero = jnp.array(0, dtype=jnp.int32)
-        return MethodState(zero, zero, RESULTS.successful, self.initial_carry(system, y0, args))
+        return MethodState(zero, zero, RESULTS.successful, self.initial_carry(system, unledgered(y0), args))
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
@@ -329,45 +339,64 @@ class AbstractMethod(diffrax.AbstractSolver):
     ) -> tuple[PyTree[Array], None, dict[str, PyTree[Array]], MethodState, diffrax.RESULTS]:
         del made_jump
         system, h = self.system_and_step(terms, t0, t1)
-        y1, solver_state, failure = self.advance(system, h, y0, args, solver_state)
+        y1, solver_state, failure = self.advance(system, t0, h, y0, args, solver_state)
         return step_return(y0, y1, solver_state, failure)
 
     def advance(
-        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, solver_state: MethodState
+        self, system: AbstractSystem, t: Scalar, h: Scalar, y0: PyTree[Array], args: PyTree, solver_state: MethodState
     ) -> tuple[PyTree[Array], MethodState, RESULTS]:
-        """One step of signed size `h` from `y0`: the new state (not yet replaced by NaN
-        on failure, see `step_return`), the method state after it, and the step's code
-        (`step_failure`).
+        """One step of signed size `h` from `y0` at time `t`: the new state (not yet
+        replaced by NaN on failure, see `step_return`), the method state after it, and
+        the step's code (`step_failure`). A `Ledgered` state's ledger gains the step's
+        `exchange`.
 
         diffrax traces a solver's step several times (to learn its output structure,
         then in its loop, and again for derivatives), so `solve_step` runs the step
         through `_traced_once`, a `jax.jit` call with the method, the system and the
         static arguments as its static arguments: JAX traces it once for them and the
         shapes of the rest, and reuses the trace."""
-        y1, solver_state, failure, _ = self.solve_step(system, h, y0, args, solver_state)
+        y1, solver_state, failure, _ = self.solve_step(system, t, h, y0, args, solver_state)
         return y1, solver_state, failure
 
     def solve_step(
-        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, solver_state: MethodState
+        self, system: AbstractSystem, t: Scalar, h: Scalar, y0: PyTree[Array], args: PyTree, solver_state: MethodState
     ) -> tuple[PyTree[Array], MethodState, RESULTS, Float[Array, " u"]]:
         """`advance`, and the root of the step's equations, which `replay_step` turns
         into the same step again without the root finder."""
-        return _traced_once(self, system, h, y0, args, solver_state)
+        return _traced_once(self, system, t, h, y0, args, solver_state)
 
     def replay_step(
-        self, system: AbstractSystem, h: Scalar, y0: PyTree[Array], args: PyTree, carry: PyTree, root: Float[Array, " u"]
+        self,
+        system: AbstractSystem,
+        t: Scalar,
+        h: Scalar,
+        y0: PyTree[Array],
+        args: PyTree,
+        carry: PyTree,
+        root: Float[Array, " u"],
     ) -> tuple[PyTree[Array], PyTree]:
         r"""The new state and carry of the step from `y0` whose root `solve_step`
         returned: the same values as `advance` (from the same setup and completion,
         with `root` in place of the root finder's answer), and the derivatives the
         implicit function theorem gives the step (`_implicit_root`). For derivatives of
         a whole run without the root finder in them (`nhjax._replay`)."""
-        _, data = self.setup(system, h, y0, args, carry)
+        _, data = self.setup(system, t, h, unledgered(y0), args, carry)
         root = _implicit_root(lax.stop_gradient(root), data, residual=self.residual, replayed=True)
-        return self.complete(root, data)
+        y1, carry = self.complete(root, data)
+        return self._entered(y0, y1, root, data)[0], carry
 
-    def _advance(self, system, h, y0, args, solver_state):
-        guess, data = self.setup(system, h, y0, args, solver_state.carry)
+    def _entered(self, y0, y1, root, data) -> tuple[PyTree[Array], Array]:
+        """`y1`, with `y0`'s ledger (if it has one) after the step's `exchange`, and
+        whether the exchange is finite."""
+        if not isinstance(y0, Ledgered):
+            return y1, jnp.array(True)
+        supplied, dissipated = self.exchange(root, data)
+        return y0.after(y1, supplied, dissipated), jnp.isfinite(supplied) & jnp.isfinite(dissipated)
+
+    def _advance(self, system, t, h, y0, args, solver_state):
+        start = y0
+        y0 = unledgered(y0)
+        guess, data = self.setup(system, t, h, y0, args, solver_state.carry)
         # The root find runs on constants; its derivatives come from `_implicit_root`.
         guess, fixed_data = lax.stop_gradient(guess), no_gradient(data)
         root_finder = self._root_finder(guess.dtype)
@@ -398,15 +427,20 @@ class AbstractMethod(diffrax.AbstractSolver):
         evaluations_finite = evaluations_finite & jnp.isfinite(solution.residual_size)
         root = _implicit_root(solution.value, data, residual=self.residual)
         y1, carry = self.complete(root, data)
+        entered, exchange_finite = self._entered(start, y1, root, data)
         failure = step_failure(
-            evaluations_finite, all_finite(y1), system.step_result(y0, y1, args), singular, solution.result
+            evaluations_finite & exchange_finite,
+            all_finite(y1),
+            system.step_result(y0, y1, args),
+            singular,
+            solution.result,
         )
-        return y1, solver_state.record(solution.steps, failure, carry), failure, solution.value
+        return entered, solver_state.record(solution.steps, failure, carry), failure, solution.value
 
 
 @eqx.filter_jit
-def _traced_once(method: AbstractMethod, system: AbstractSystem, h, y0, args, solver_state: MethodState):
-    return method._advance(system, h, y0, args, solver_state)
+def _traced_once(method: AbstractMethod, system: AbstractSystem, t, h, y0, args, solver_state: MethodState):
+    return method._advance(system, t, h, y0, args, solver_state)
 
 
 class AbstractSymmetricSecondOrderMethod(AbstractMethod):

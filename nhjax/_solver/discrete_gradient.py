@@ -4,6 +4,7 @@ import functools
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
+import jax.numpy as jnp
 import optimistix as optx
 
 from .._discrete_gradient import (
@@ -39,13 +40,15 @@ def _underlying(function):
 
 class _StepData(NamedTuple):
     """What the residual of one step needs (`DiscreteGradient.setup`): the start $x$,
-    the step $h$ and the scale $s$ of the unknowns $u = (x' - x)/s$."""
+    the step $h$, the scale $s$ of the unknowns $u = (x' - x)/s$, and the time of the
+    step's midpoint, at which a force is evaluated."""
 
     system: SkewGradientSystem
     x: Any
     h: Any
     scale: Any
     args: Any
+    midpoint_time: Any
 
 
 class DiscreteGradient(AbstractMethod):
@@ -59,6 +62,22 @@ class DiscreteGradient(AbstractMethod):
     midpoint) the method is time-symmetric, hence second order; with `nhjax.itoh_abe`
     it is first order. For the reduced equations of a nonholonomic system (dynamical)
     it also keeps the constraints, since the $q$-update lies in $\mathcal{D}$.
+
+    **Dissipation and force.** For $\dot x = (\Pi - R)\nabla H + g(t, x)$ the step is
+
+    $$\frac{x' - x}{h} = \big(\tilde\Pi(x, x') - R(\bar x)\big)\bar\nabla H(x, x')
+      + g(t + \tfrac h2, \bar x),\qquad \bar x = \tfrac12(x + x'),$$
+
+    $R$ and $g$ at the step's midpoint in state and time (Celledoni & Høiseth,
+    arXiv:1706.08621, §3), and the discrete power balance
+
+    $$H(x') - H(x) = h\,\bar\nabla H^T g(t + \tfrac h2, \bar x)
+      - h\,\bar\nabla H^TR(\bar x)\bar\nabla H$$
+
+    holds to roundoff, the two terms being the step's `exchange`: what is dissipated is
+    never negative where $R(\bar x)$ is positive semidefinite, and the damped,
+    unforced energy never increases. The midpoint keeps the method symmetric, so
+    second order for a time-dependent $g$.
 
     Each step solves for the scaled increment $u = (x' - x)/s$, $s = 1 + |x|$ (elementwise),
     from the explicit Euler predictor, by `root_finder` (default: the chord iteration to
@@ -121,19 +140,42 @@ class DiscreteGradient(AbstractMethod):
             self.root_find_max_steps,
         )
 
-    def setup(self, system: SkewGradientSystem, h, y0, args, carry):
+    def setup(self, system: SkewGradientSystem, t, h, y0, args, carry):
         del carry
         scale = increment_scale(y0)
-        guess = h * system.vf(None, y0, args) / scale
-        return guess, _StepData(system, y0, h, scale, args)
+        midpoint_time = t + 0.5 * h
+        guess = h * system.vf(midpoint_time, y0, args) / scale
+        return guess, _StepData(system, y0, h, scale, args, midpoint_time)
 
-    def residual(self, u, data, discrete_gradient=None):
+    def _equations(self, u, data, discrete_gradient=None):
+        """The step's right-hand side $(x' - x)/h$, and its exchange (`exchange`)."""
         system, x, args = data.system, data.x, data.args
         x1 = x + data.scale * u
         discrete_gradient = self.discrete_gradient if discrete_gradient is None else discrete_gradient
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
-        return u - data.h * (structure @ gradient) / data.scale
+        field = structure @ gradient
+        zero = jnp.zeros((), gradient.dtype)
+        supplied = dissipated = zero
+        midpoint = 0.5 * (x + x1)
+        if system.dissipation is not None:
+            damping = system.dissipation(midpoint, args) @ gradient
+            field = field - damping
+            dissipated = data.h * (gradient @ damping)
+        if system.force is not None:
+            force = system.force(data.midpoint_time, midpoint, args)
+            field = field + force
+            supplied = data.h * (gradient @ force)
+        return field, (supplied, dissipated)
+
+    def residual(self, u, data, discrete_gradient=None):
+        field, _ = self._equations(u, data, discrete_gradient)
+        return u - data.h * field / data.scale
+
+    def exchange(self, u, data):
+        r"""$h\,\bar\nabla H^Tg$ and $h\,\bar\nabla H^TR\bar\nabla H$ (see the
+        class docstring)."""
+        return self._equations(u, data)[1]
 
     def root_find_residual(self, u, data):
         """For `nhjax.gonzalez`, the residual with `gonzalez_values` (the same values,

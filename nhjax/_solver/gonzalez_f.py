@@ -22,6 +22,7 @@ class _StepData(NamedTuple):
     scale: Any
     constraint_unit: Any
     args: Any
+    midpoint_time: Any
 
 
 class GonzalezF(AbstractSymmetricSecondOrderMethod):
@@ -36,6 +37,14 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
     it constrains the discrete-gradient velocity at $\bar q$, not $\partial_pH$ at the
     step's end, so $A(q)\partial_pH(q, p) = 0$ holds only to the method's accuracy.
     Second order and time-symmetric.
+
+    **Dissipation and force.** The momentum equation gains
+    $h\big(F(t + \tfrac h2, \bar z) - D(\bar z)\bar v\big)$ with $\bar v = \bar\nabla_2H_p$,
+    the discrete-gradient velocity, and $D$, $F$ at the midpoint
+    $\bar z = (z + z')/2$ and the step's midpoint time (Celledoni & Høiseth,
+    arXiv:1706.08621): as the constraint force does no discrete work,
+    $H(z') - H(z) = h\,\bar v^TF - h\,\bar v^TD\bar v$ to roundoff (the step's
+    `exchange`), and the step stays symmetric.
 
     Each step solves for the scaled increment $(z' - z)/s$, $s = 1 + |z|$ (elementwise),
     and the impulse $h\lambda$, with the constraint equation divided by
@@ -77,21 +86,23 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
             "constraint exactly"
         )
 
-    def setup(self, system: NonholonomicSystem, h, y0, args, carry):
+    def setup(self, system: NonholonomicSystem, t, h, y0, args, carry):
         del carry
         q, p = y0
         z = jnp.concatenate([q, p])
         scale = increment_scale(z)
-        velocity, acceleration = system.vf(None, y0, args)
+        midpoint_time = t + 0.5 * h
+        velocity, acceleration = system.vf(midpoint_time, y0, args)
         guess = jnp.concatenate(
-            [h * jnp.concatenate([velocity, acceleration]) / scale, h * system.multiplier(y0, args)]
+            [h * jnp.concatenate([velocity, acceleration]) / scale, h * system.multiplier(y0, args, midpoint_time)]
         )
         constraint_unit = positive_unit(
             jnp.max(jnp.abs(system.constraints(q, args))) * jnp.max(1 + jnp.abs(velocity))
         )
-        return guess, _StepData(system, z, h, scale, constraint_unit, args)
+        return guess, _StepData(system, z, h, scale, constraint_unit, args, midpoint_time)
 
-    def residual(self, unknowns, data, discrete_gradient=gonzalez):
+    def _equations(self, unknowns, data, discrete_gradient=gonzalez):
+        """The residual, and the step's exchange (`exchange`)."""
         system, z, h, scale, args = data.system, data.z, data.h, data.scale, data.args
         (n2,) = z.shape
         n = n2 // 2
@@ -102,9 +113,26 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
         a = system.constraints(0.5 * (z[:n] + z1[:n]), args)
         flow = jnp.concatenate([gradient[n:], -gradient[:n]])
         force = jnp.concatenate([jnp.zeros((n,), z.dtype), a.T @ impulse])
-        return jnp.concatenate(
+        exchange = None
+        if system.is_forced():
+            midpoint = 0.5 * (z + z1)
+            q_mid, p_mid, velocity = midpoint[:n], midpoint[n:], gradient[n:]
+            applied = system.applied_force(data.midpoint_time, q_mid, p_mid, args, velocity)
+            flow = flow.at[n:].add(applied)
+            supplied, dissipated = system.power_along(data.midpoint_time, q_mid, p_mid, velocity, args)
+            exchange = (h * supplied, h * dissipated)
+        residual = jnp.concatenate(
             [u - (h * flow + force) / scale, (a @ gradient[n:]) / data.constraint_unit]
         )
+        return residual, exchange
+
+    def residual(self, unknowns, data, discrete_gradient=gonzalez):
+        return self._equations(unknowns, data, discrete_gradient)[0]
+
+    def exchange(self, unknowns, data):
+        r"""$h\,\bar v^TF$ and $h\,\bar v^TD\bar v$, $\bar v = \bar\nabla_2H_p$ (see the
+        class docstring)."""
+        return self._equations(unknowns, data)[1]
 
     def root_find_residual(self, unknowns, data):
         return self.residual(unknowns, data, gonzalez_values)

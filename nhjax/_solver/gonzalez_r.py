@@ -91,6 +91,7 @@ class _StepData(NamedTuple):
     momentum: Array | None
     previous_velocity: Array
     previous_step: Array
+    midpoint_time: Any
 
 
 class GonzalezR(AbstractSymmetricSecondOrderMethod):
@@ -136,6 +137,22 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     $\epsilon(|H| + \sum_i|x_i||\partial_iH|)$ per step, which for a wound angle
     exceeds $\epsilon|H|$: storing the angle rounds it.
 
+    **Dissipation and force.** For a system with $D$ and $F$ the reduced system is
+    $\dot\zeta = (\Pi - R_\zeta)\nabla\mathcal{H} + g_\zeta$ with
+    $R_\zeta = \operatorname{diag}(0, X^TDX)$ and $g_\zeta = (0, X^TF)$
+    (`nhjax._reduced.ReducedSystem.dissipation`, `.force`), and step 2 becomes the
+    port-Hamiltonian discrete-gradient step of Celledoni & Høiseth
+    (arXiv:1706.08621),
+    $$\zeta' - \zeta = h\big[\Pi(\bar\zeta)\bar\nabla_2\mathcal{H}
+      + \big(0,\ X^T(F(t + \tfrac h2, \bar q, \bar p) - D(\bar q, \bar p)\bar v)\big)\big],
+      \qquad \bar v = X\bar\nabla_{2,\rho}\mathcal{H},$$
+    with $X$, $\bar p = p(\bar\zeta)$, $D$ and $F$ at the midpoint $\bar\zeta$ and
+    the step's midpoint time. Since $\bar\nabla_2\mathcal{H}^T(0, X^Tw) = \bar v^Tw$,
+    $$H(q', p') - H(q, p) = h\,\bar v^TF - h\,\bar v^TD\bar v$$
+    to roundoff (the step's `exchange`), the constraint holds as without them (the
+    $q$-update is unchanged in form), and the step stays symmetric, so second order.
+    The chord matrix carries the derivatives of $F - Dv$ in the fixed frame.
+
     A step whose frame degenerates ($A$ losing rank at $q'$, or between $q$ and $q'$,
     where the frame with the step's signs turns singular) fails with
     `nhjax.RESULTS.constraints_rank_deficient` (`NonholonomicSystem.rank_result`).
@@ -177,7 +194,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         no_step = jnp.full((), jnp.nan, dtype=zeta.dtype)
         return _Carry(zeta, signs, unknown, unknown, no_step, no_step)
 
-    def setup(self, system: NonholonomicSystem, h, y0, args, carry):
+    def setup(self, system: NonholonomicSystem, t, h, y0, args, carry):
         # A step starts from the previous step's zeta' itself, not from
         # zeta = (q, X(q)^T p) recomputed from the (q, p) it returned: the map
         # p -> rho -> p rounds with a bias, which over many steps would drift H. The
@@ -209,9 +226,10 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         # the batch evaluates the Euler branch only at the steps where some trajectory
         # needs it (`rarely`), not at every step.
         extrapolated = carry.last_velocity + reach * (carry.last_velocity - carry.earlier_velocity)
+        midpoint_time = t + 0.5 * h
         velocity = rarely(
             ~extrapolates,
-            lambda operands: operands[0].vector_field(*operands[1:]),
+            lambda operands: operands[0].vector_field(*operands[1:], t=midpoint_time),
             lax.stop_gradient(extrapolated),
             no_gradient((reduced, zeta, args)),
         )
@@ -220,7 +238,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         previous = jnp.where(continues, carry.last_velocity, jnp.nan)
         previous_step = jnp.where(continues, carry.last_step, jnp.nan)
         energy, momentum = reduced.start_of_step(zeta, args)
-        data = _StepData(reduced, zeta, h, scale, args, energy, momentum, previous, previous_step)
+        data = _StepData(reduced, zeta, h, scale, args, energy, momentum, previous, previous_step, midpoint_time)
         return guess, data
 
     def residual(self, u, data, correction: bool = True, branch: Branch = "cond"):
@@ -231,7 +249,17 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         $\mathcal{H}(\zeta') - \mathcal{H}(\zeta)$ then coming from gradients along a
         segment (`nhjax._reduced.ReducedSystem.energy_segment`), which is exact to its
         truncation whatever the midpoint gradient, so with either `derivative`."""
-        reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
+        return u - data.h * self._field(u, data, correction, branch)[0] / data.scale
+
+    def exchange(self, u, data):
+        r"""$h\,\bar v^TF$ and $h\,\bar v^TD\bar v$ with
+        $\bar v = X\bar\nabla_\rho\mathcal{H}$, and $X$, $p$, $D$ and $F$ at the
+        midpoint (see the class docstring)."""
+        return self._field(u, data)[1]
+
+    def _field(self, u, data, correction: bool = True, branch: Branch = "cond"):
+        r"""The step's right-hand side $(\zeta' - \zeta)/h$, and its exchange."""
+        reduced, zeta, scale, args = data.reduced, data.zeta, data.scale, data.args
         zeta1 = zeta + scale * u
         midpoint = reduced.at(0.5 * (zeta + zeta1), args)
         gradient = midpoint.gradient
@@ -249,7 +277,10 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
                 f_x1=energy1,
                 segment=segment,
             )
-        return u - h * midpoint.structure_times(gradient) / scale
+        field, power = reduced.with_applied_force(
+            data.midpoint_time, 0.5 * (zeta + zeta1), midpoint, gradient, midpoint.structure_times(gradient), args
+        )
+        return field, None if power is None else (data.h * power[0], data.h * power[1])
 
     def root_find_residual(self, u, data):
         return self.residual(u, data, branch="rarely")
@@ -303,7 +334,11 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
             x, rho = split_reduced(z, reduced.signs)
             p, y = reduced.momentum_in_frame(x, frame, rho, args)
             force = reduced.position_gradient(x, p, args)
-            return jnp.concatenate([frame.times(y), -frame.transpose_times(force)]), (y, force)
+            field = jnp.concatenate([frame.times(y), -frame.transpose_times(force)])
+            if system.is_forced():
+                applied = system.applied_force(data.midpoint_time, x, p, args, frame.times(y))
+                field = field.at[q.shape[0] :].add(frame.transpose_times(applied))
+            return field, (y, force)
 
         field_jacobian, (y, force) = jax.jacfwd(field_in_fixed_frame, has_aux=True)(midpoint)
         a = system.constraints(q, args)

@@ -1,5 +1,6 @@
 r"""Projection onto the invariants: any diffrax solver, each step's end projected back
-onto the energy level of the start and onto the constraint."""
+onto the energy level of the start (for a forced system, onto the energy balance) and
+onto the constraint."""
 
 from typing import Any, ClassVar
 
@@ -12,6 +13,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, Int, PyTree, Scalar
 
+from .._ledger import Ledgered
 from .._linalg import inverse
 from .._nonholonomic import NonholonomicSystem
 from .._results import first_failure, RESULTS
@@ -77,6 +79,15 @@ def _row_scales(system: AbstractSystem, y, args, energy) -> Float[Array, " r"]:
     return lax.stop_gradient(energy_scale)
 
 
+def _level(system: AbstractSystem, y0, args) -> Scalar:
+    """The energy every step is projected onto, less the ledger's balance for a forced
+    run: $H(y_0) - (W_0 - D_0)$, so that a step's end is projected onto
+    $H = H(y_0) + (W_1 - W_0) - (D_1 - D_0)$."""
+    if isinstance(y0, Ledgered):
+        return system.energy(y0.state, args) - (y0.work - y0.dissipated)
+    return system.energy(y0, args)
+
+
 def _residual(multipliers, data: _ProjectionData):
     y = data.unravel(data.y_tilde + data.directions.T @ multipliers)
     return _invariants(data.system, y, data.args, data.energy) / data.scales
@@ -108,6 +119,18 @@ class Projection(diffrax.AbstractWrappedSolver):
     (`nhjax.Composition`) on reversible systems, such as bounded errors in the other
     first integrals of integrable problems (GNI §IV.4, Example 4.4, and §XI). It keeps
     exactly what it projects onto and nothing else.
+
+    **Dissipation and force.** For a system with a force or a dissipation the energy
+    is not kept but balanced: the run carries its energy ledger, the work $W$ supplied
+    and the energy $D$ dissipated (`nhjax._ledger`), as extra state integrated by
+    `solver` with the system, and each step's end is projected onto the energy
+    balance and the constraint,
+    $$g(y) = \big(H(y) - H(y_0) - (W_1 - D_1),\ A(q)\,\partial_pH(q, p)\big),$$
+    with $W_1$, $D_1$ the ledger at the step's end, which the projection leaves as it
+    is. The balance then holds to roundoff at every step, and the ledger, the state
+    and so the energy to `solver`'s order. Outside a run that carries the ledger
+    (`nhjax.integrate`, `nhjax.integrate_adaptive`) a forced system is refused: its
+    initial energy level is not an invariant.
 
     **Steps, saves and derivatives.** The step-size controller sees `solver`'s error
     estimate of $\tilde y_1$. The interpolation between step ends is linear (the
@@ -196,10 +219,17 @@ class Projection(diffrax.AbstractWrappedSolver):
 
     def init(self, terms, t0, t1, y0, args) -> ProjectionState:
         system = unwrapped_system(terms)
+        if system.is_forced() and not isinstance(y0, Ledgered):
+            raise ValueError(
+                "Projection of a system with a force or a dissipation projects onto the energy "
+                "balance H(y) = H(y0) + work - dissipated, never onto the initial energy level, and "
+                "needs the run's energy ledger (nhjax._ledger) for it: run it with nhjax.integrate or "
+                "nhjax.integrate_adaptive, which carry the ledger."
+            )
         zero = jnp.array(0, dtype=jnp.int32)
         return ProjectionState(
             inner=self.solver.init(terms, t0, t1, y0, args),
-            energy=system.energy(y0, args),
+            energy=_level(system, y0, args),
             failure=RESULTS.successful,
             total_steps=zero,
             max_steps=zero,
@@ -210,7 +240,12 @@ class Projection(diffrax.AbstractWrappedSolver):
             terms, t0, t1, y0, args, solver_state.inner, made_jump
         )
         system = unwrapped_system(terms)
-        y1, steps, projection_result = self.project(system, y_tilde, args, solver_state.energy)
+        if isinstance(y_tilde, Ledgered):
+            level = solver_state.energy + y_tilde.work - y_tilde.dissipated
+            y1, steps, projection_result = self.project(system, y_tilde.state, args, level)
+            y1 = Ledgered(y1, y_tilde.work, y_tilde.dissipated)
+        else:
+            y1, steps, projection_result = self.project(system, y_tilde, args, solver_state.energy)
         failure = first_failure(
             RESULTS.where(inner_result == diffrax.RESULTS.successful, RESULTS.successful, RESULTS.nonfinite_step),
             projection_result,

@@ -38,6 +38,8 @@ class _StepData(eqx.Module):
     p0: Any = None
     q_scale: Any = None
     p_scale: Any = None
+    v0: Any = None
+    midpoint_time: Any = None
 
 
 class SIDLA(AbstractSymmetricSecondOrderMethod):
@@ -61,6 +63,20 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
     $q'_{1/2} = q_1 - \tfrac h2\partial_pH(q_1, p_1) = q_{1/2}$; then $(q_0, p_0)$ with
     the same $\lambda$ solves its equations, the last one because the start satisfies
     the constraint.
+
+    **Dissipation and force.** The forced discrete Lagrange--d'Alembert principle
+    (Marsden & West, "Discrete mechanics and variational integrators", Acta Numerica
+    10 (2001), §3.2, with the midpoint discrete forces $f^\pm = \tfrac h2 F_{ap}$)
+    adds to the kick the applied force of the system, $F - Dv$, once over the step:
+    $$p_1 = \dots + h\big(F(t + \tfrac h2, q_{1/2}, \bar p) - D(q_{1/2}, \bar p)\,\bar v\big),
+      \qquad \bar p = \tfrac12(p_0 + p_1),\quad \bar v = \tfrac12\big(\partial_pH(q_0, p_0)
+      + \partial_pH(q_1, p_1)\big) = (q_1 - q_0)/h.$$
+    All of it is unchanged by $h \to -h$ with the ends swapped, so the method stays
+    symmetric and second order. Its `exchange`, $h\,\bar v^TF$ supplied and
+    $h\,\bar v^TD\bar v$ dissipated, is what the discrete force does on the discrete
+    displacement $q_1 - q_0$; the energy balance holds to second order, not to
+    roundoff. A forced step always takes the general path below ($\bar p$, $\bar v$
+    and $F$ make $p_1$ implicit).
 
     **The implicit structure.** For a $q$-dependent metric the velocity at the end,
     $\partial_pH(q_1, p_1)$, makes the $q$ equation implicit as well, and
@@ -86,7 +102,8 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
         `velocity_depends_on_position` finds that $\partial_pH$ computes nothing from
         $q$ (a trace-time check of the program, not of values at a point, so it holds
         everywhere). `True` on a system with a $q$-dependent metric gives a wrong
-        method; `False` is always correct.
+        method; `False` is always correct. A forced system takes the general path
+        whatever this says.
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
     """
 
@@ -120,7 +137,7 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
     def initial_carry(self, system: NonholonomicSystem, y0, args):
         return system.multiplier(y0, args)
 
-    def setup(self, system: NonholonomicSystem, h, y0, args, carry):
+    def setup(self, system: NonholonomicSystem, t, h, y0, args, carry):
         q0, p0 = y0
         v0 = system.velocity(q0, p0, args)
         q_half = q0 + 0.5 * h * v0
@@ -143,14 +160,23 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
             v_unit=v_unit,
             force_half=force_half,
         )
-        if self.metric_is_constant(system, y0, args):
+        if self.metric_is_constant(system, y0, args) and not system.is_forced():
             return impulse_guess, _StepData(**common, constant_metric=True, kick=p0 - h * force_half)
         q_scale = increment_scale(q0)
         # The constant-metric formulas as the predictor: O(h^3) from the root.
         p1 = p0 - h * force_half + common["a_half"].T @ (p_unit * impulse_guess)
         q1 = q_half + 0.5 * h * system.velocity(q_half, p1, args)
         guess = jnp.concatenate([(q1 - q0) / q_scale, (p1 - p0) / p_scale, impulse_guess])
-        data = _StepData(**common, constant_metric=False, q0=q0, p0=p0, q_scale=q_scale, p_scale=p_scale)
+        data = _StepData(
+            **common,
+            constant_metric=False,
+            q0=q0,
+            p0=p0,
+            q_scale=q_scale,
+            p_scale=p_scale,
+            v0=v0,
+            midpoint_time=t + 0.5 * h,
+        )
         return guess, data
 
     def _constant_metric_state(self, u, data: _StepData):
@@ -178,11 +204,26 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
         v1 = system.velocity(q1, p1, args)
         force = data.force_half + jax.grad(system.hamiltonian)(data.q_half, p1, args)
         position = (data.q_half - data.q0 + 0.5 * h * v1) / data.q_scale
-        momentum = (-0.5 * h * force + data.a_half.T @ (data.p_unit * impulse)) / data.p_scale
+        kick = -0.5 * h * force + data.a_half.T @ (data.p_unit * impulse)
+        if system.is_forced():
+            mean_momentum, mean_velocity = 0.5 * (data.p0 + p1), 0.5 * (data.v0 + v1)
+            kick = kick + h * system.applied_force(data.midpoint_time, data.q_half, mean_momentum, args, mean_velocity)
+        momentum = kick / data.p_scale
         n = q1.shape[0]
         return jnp.concatenate(
             [u[:n] - position, u[n : 2 * n] - momentum, self._constraint(q1, v1, data)]
         )
+
+    def exchange(self, u, data: _StepData):
+        r"""$h\,\bar v^TF$ and $h\,\bar v^TD\bar v$ at $(t + \tfrac h2, q_{1/2}, \bar p)$,
+        $\bar v = \tfrac12(v_0 + v_1) = (q_1 - q_0)/h$ (see the class docstring)."""
+        system, args = data.system, data.args
+        q1, p1, _ = self._split(u, data)
+        mean_velocity = 0.5 * (data.v0 + system.velocity(q1, p1, args))
+        supplied, dissipated = system.power_along(
+            data.midpoint_time, data.q_half, 0.5 * (data.p0 + p1), mean_velocity, args
+        )
+        return data.h * supplied, data.h * dissipated
 
     def complete(self, u, data: _StepData):
         if data.constant_metric:

@@ -33,6 +33,7 @@ class _StepData(NamedTuple):
     impulse_scale: Any
     constraint_scale: Any
     args: Any
+    t: Any
 
 
 class SPARK(AbstractMethod):
@@ -109,6 +110,15 @@ class SPARK(AbstractMethod):
     the $s$-stage Lobatto IIIA-B-C-C*-D methods; the tests measure 2 and, for $s = 3$,
     4). The energy is not conserved: its error is $O(h^2)$ and does not drift.
 
+    **Dissipation and force.** The applied force of the system,
+    $F(t + c_jh, Q_j, P_j) - D(Q_j, P_j)V_j$ with $V_j = \partial_pH(Q_j, P_j)$, joins
+    $-\partial_qH$ in the force term, on the IIIB tableau with the other forces (the
+    partitioned Runge-Kutta counterpart of the forced discrete variational principle,
+    Marsden & West, Acta Numerica 10 (2001), §3.2). The stage times
+    $c_j$ are the tableau's nodes. The tableaus stay self-adjoint, so the method stays
+    symmetric. Its `exchange` applies the weights $b$ to the stage powers: the energy
+    balance holds to the method's order.
+
     **Solve.** The unknowns are the scaled stage increments $(Q_i - q_0)/s_q$,
     $(P_i - p_0)/s_p$ ($s = 1 + |\cdot|$ elementwise, `increment_scale`) and the
     impulses $h\Lambda_j$ in momentum units; the constraint equations are divided by
@@ -159,7 +169,7 @@ class SPARK(AbstractMethod):
             for x in (t.b, t.velocity, t.force, t.constraint_force, t.constraint_weights)
         )
 
-    def setup(self, system: NonholonomicSystem, h, y0, args, carry):
+    def setup(self, system: NonholonomicSystem, t, h, y0, args, carry):
         del carry
         q, p = y0
         s, k = self.tableau.stages, system.constraints(q, args).shape[0]
@@ -168,7 +178,9 @@ class SPARK(AbstractMethod):
         a = system.constraints(q, args)
         v0 = system.velocity(q, p, args)
         f0 = -jax.grad(system.hamiltonian)(q, p, args)
-        multiplier = system.multiplier(y0, args)
+        if system.is_forced():
+            f0 = f0 + system.applied_force(t, q, p, args)
+        multiplier = system.multiplier(y0, args, t)
         # Impulses in momentum units: |A_r| h Lambda_r is the size of the momentum
         # change that constraint r makes. Constraint equations in units of their
         # rounding, |A_r| |v|.
@@ -183,11 +195,14 @@ class SPARK(AbstractMethod):
         ) / scale_p
         guess_impulse = jnp.broadcast_to(h * multiplier / impulse_scale, (s, k))
         guess = jnp.concatenate([guess_q.ravel(), guess_p.ravel(), guess_impulse.ravel()])
-        return guess, _StepData(system, q, p, h, scale_q, scale_p, impulse_scale, constraint_scale, args)
+        return guess, _StepData(system, q, p, h, scale_q, scale_p, impulse_scale, constraint_scale, args, t)
 
     def _stages(self, unknowns, data):
-        """The stage values, the derivatives of H there, the constraint impulses
-        $A(Q_j)^T h\\Lambda_j$ and the end point."""
+        """The stage values, the velocities and forces there (the applied force
+        included, `nhjax.NonholonomicSystem.applied_force`), the constraint impulses
+        $A(Q_j)^T h\\Lambda_j$, the end point, and the powers of the applied force at
+        the stages (`nhjax.NonholonomicSystem.power_along`; zeros for a conservative
+        system)."""
         q, p, h, scale_q, scale_p = data.q, data.p, data.h, data.scale_q, data.scale_p
         system, args = data.system, data.args
         s, n = self.tableau.stages, q.shape[0]
@@ -198,20 +213,27 @@ class SPARK(AbstractMethod):
         stage_q = q + scale_q * u_q
         stage_p = p + scale_p * u_p
 
-        def evaluate(qj, pj, impulse_j):
+        stage_times = data.t + h * jnp.asarray(self.tableau.c, dtype=q.dtype)
+
+        def evaluate(tj, qj, pj, impulse_j):
             grad_q, grad_p = jax.grad(system.hamiltonian, argnums=(0, 1))(qj, pj, args)
             a = system.constraints(qj, args)
-            return grad_p, -grad_q, a.T @ impulse_j, a @ grad_p
+            force = -grad_q
+            power = jnp.zeros(2, q.dtype)
+            if system.is_forced():
+                force = force + system.applied_force(tj, qj, pj, args, grad_p)
+                power = jnp.stack(system.power_along(tj, qj, pj, grad_p, args))
+            return grad_p, force, a.T @ impulse_j, a @ grad_p, power
 
-        velocity, force, reaction, g = jax.vmap(evaluate)(stage_q, stage_p, impulse)
+        velocity, force, reaction, g, power = jax.vmap(evaluate)(stage_times, stage_q, stage_p, impulse)
         q1 = q + h * (b @ velocity)
         p1 = p + h * (b @ force) + b @ reaction
-        return (u_q, u_p), (velocity, force, reaction, g), (q1, p1)
+        return (u_q, u_p), (velocity, force, reaction, g), (q1, p1), power
 
     def residual(self, unknowns, data):
         h, scale_q, scale_p, constraint_scale = data.h, data.scale_q, data.scale_p, data.constraint_scale
         _, velocity_tableau, force_tableau, constraint_tableau, weights = self._coefficients(data.q.dtype)
-        (u_q, u_p), (velocity, force, reaction, g), (q1, p1) = self._stages(unknowns, data)
+        (u_q, u_p), (velocity, force, reaction, g), (q1, p1), _ = self._stages(unknowns, data)
         stage_q = u_q - h * (velocity_tableau @ velocity) / scale_q
         stage_p = u_p - (h * (force_tableau @ force) + constraint_tableau @ reaction) / scale_p
         stage_constraint = (weights @ g) / constraint_scale
@@ -221,5 +243,12 @@ class SPARK(AbstractMethod):
         )
 
     def complete(self, unknowns, data):
-        _, _, y1 = self._stages(unknowns, data)
+        _, _, y1, _ = self._stages(unknowns, data)
         return y1, None
+
+    def exchange(self, unknowns, data):
+        r"""$h\sum_j b_j\,V_j^TF_j$ and $h\sum_j b_j\,V_j^TD_jV_j$, the quadrature of
+        the update applied to the power at the stages (see the class docstring)."""
+        b = self._coefficients(data.q.dtype)[0]
+        supplied, dissipated = data.h * (b @ self._stages(unknowns, data)[-1])
+        return supplied, dissipated

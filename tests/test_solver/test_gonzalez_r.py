@@ -98,7 +98,7 @@ def test_chord_matrix_contracts_like_h(name):
 
     @eqx.filter_jit  # one program, not hundreds of operations dispatched one by one
     def contraction(system, h, y0, args):
-        guess, data = METHOD.setup(system, h, y0, args, METHOD.initial_carry(system, y0, args))
+        guess, data = METHOD.setup(system, 0.0, h, y0, args, METHOD.initial_carry(system, y0, args))
         exact = jax.jacfwd(METHOD.simplified_residual)(guess, data)
         iteration = jnp.eye(guess.shape[0]) - jnp.linalg.solve(METHOD.chord_jacobian(guess, data), exact)
         return jnp.max(jnp.abs(iteration)), jnp.max(jnp.abs(exact - jnp.eye(guess.shape[0])))
@@ -118,7 +118,7 @@ def test_predictor_is_third_order_once_two_steps_are_known():
 
     @eqx.filter_jit
     def guess_error_and_step(h, t0, y, state):
-        guess, data = METHOD.setup(system, h, y, args, state.carry)
+        guess, data = METHOD.setup(system, 0.0, h, y, args, state.carry)
         y, _, _, state, result = METHOD.step(system, t0, t0 + h, y, args, state, False)
         increment = state.carry.zeta - data.zeta
         return jnp.max(jnp.abs(data.scale * guess - increment)), y, state, result

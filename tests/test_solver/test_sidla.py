@@ -27,7 +27,7 @@ def test_constant_metric_is_detected_from_the_program():
         system, args = example.canonical, example.args
 
         def guess(y0):
-            return method.setup(system, 0.1, y0, args, method.initial_carry(system, y0, args))[0]
+            return method.setup(system, 0.0, 0.1, y0, args, method.initial_carry(system, y0, args))[0]
 
         return jax.eval_shape(guess, y0).shape
 
