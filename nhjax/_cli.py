@@ -211,8 +211,9 @@ def _simulate(arguments, n_steps: int) -> int:
     # in which the constraint holds by construction.
     states = dict(zip(("q", "p"), solution.ys)) if isinstance(solution.ys, tuple) else dict(x=solution.ys)
     trajectory = dict(ts=solution.ts, **states, energy=solution.energy)
-    if solution.constraint is not None:
-        trajectory["constraint"] = solution.constraint
+    for name in ("constraint", "work", "dissipated"):
+        if getattr(solution, name) is not None:
+            trajectory[name] = getattr(solution, name)
     trajectory = {name: np.asarray(values) for name, values in trajectory.items()}
     try:
         write_atomically(out, lambda file: np.savez(file, **trajectory))
@@ -232,7 +233,14 @@ def _simulate(arguments, n_steps: int) -> int:
     print(f"{description}; {_method_label(arguments)}, h = {arguments.dt}, t1 = {arguments.t1}")
     print(f"  steps                              {n_steps}" + (f" (resumed: {on_disk} chunks were on disk)" if on_disk else ""))
     print(f"  saves                              {energy.shape[0]}, written to {out}")
-    print(f"  max relative energy error          {np.max(np.abs(energy - energy[0])) / scale:.2e}")
+    if "work" in trajectory:
+        # A forced system: its energy is not kept but balanced, H - H(0) = W - D.
+        work, dissipated = trajectory["work"], trajectory["dissipated"]
+        balance = energy - energy[0] - (work - dissipated)
+        print(f"  energy supplied, dissipated        {work[-1]:.6g}, {dissipated[-1]:.6g}")
+        print(f"  max relative energy balance error  {np.max(np.abs(balance)) / max(scale, np.max(np.abs(energy))):.2e}")
+    else:
+        print(f"  max relative energy error          {np.max(np.abs(energy - energy[0])) / scale:.2e}")
     if "constraint" in trajectory:
         print(f"  max constraint error |A(q) dH/dp|  {np.max(np.abs(trajectory['constraint'])):.2e}")
     else:

@@ -39,6 +39,18 @@ USER_MODULE = textwrap.dedent(
         return system, (q0, p0), args
 
 
+    def driven():
+        """The particle with viscous friction and a periodic push along x."""
+        _, y0, args = factory()
+        system = nh.NonholonomicSystem(
+            hamiltonian,
+            constraints,
+            dissipation=lambda q, p, args: 0.1 * jnp.eye(3, dtype=q.dtype),
+            force=lambda t, q, p, args: jnp.stack([jnp.cos(t), 0.0 * t, 0.0 * t]),
+        )
+        return system, y0, args
+
+
     def not_a_tuple():
         return factory()[0]
 
@@ -104,6 +116,19 @@ def test_a_users_system_runs_with_the_methods_and_keeps_what_they_keep(folder, m
     else:
         assert 1e-10 < np.max(np.abs(energy / energy[0] - 1)) < 1e-2
     assert np.ptp(q[:, 0]) > 0.1
+
+
+def test_a_users_forced_system_reports_its_energy_balance(folder):
+    """A factory whose system has a force and a dissipation: the run saves the work and
+    the dissipated energy, the summary prints the balance, and the balance holds in the
+    saved arrays to roundoff."""
+    run = _simulate(folder, "--system", "particle:driven", "--dt", "0.1", "--t1", "20", "--out", "driven.npz")
+    assert run.returncode == 0, run.stderr
+    assert "max relative energy balance error" in run.stdout and "energy supplied, dissipated" in run.stdout
+    saved = _saved(folder / "driven.npz")
+    energy, work, dissipated = saved["energy"], saved["work"], saved["dissipated"]
+    assert np.max(np.abs(energy - energy[0] - (work - dissipated))) < 1e-13 * np.max(np.abs(energy))
+    assert np.all(np.diff(dissipated) > 0) and np.ptp(work) > 0.1
 
 
 def test_the_positional_form_is_the_same_run(folder):

@@ -229,9 +229,9 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         midpoint_time = t + 0.5 * h
         velocity = rarely(
             ~extrapolates,
-            lambda operands: operands[0].vector_field(*operands[1:], t=midpoint_time),
+            lambda operands: operands[0].vector_field(*operands[1:]),
             lax.stop_gradient(extrapolated),
-            no_gradient((reduced, zeta, args)),
+            no_gradient((reduced, zeta, args, midpoint_time)),
         )
         scale = increment_scale(zeta)
         guess = h * velocity / scale

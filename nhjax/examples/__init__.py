@@ -1,8 +1,9 @@
 """The systems nhjax ships, each an `AbstractExample`: its parameters (`.args`), the forms
 it comes in (canonical, from its Lagrangian, reduced in adapted coordinates), maps
 between them and initial states in one convention. `EXAMPLES` is the catalogue, by the
-names the command line uses: the paper's systems and Euler's disk (`rolling_disk_3d`),
-a system as a mechanician derives it."""
+names the command line uses: the paper's systems, Euler's disk (`rolling_disk_3d`), a
+system as a mechanician derives it, and a differential-drive robot with motors and
+friction (`differential_drive`)."""
 
 from .._adapted import discrete_constraint_residual as discrete_constraint_residual
 from ._example import AbstractExample as AbstractExample
@@ -13,9 +14,16 @@ from ._rolling_disk import rolling_disk as rolling_disk, RollingDisk as RollingD
 from ._rolling_disk_3d import rolling_disk_3d as rolling_disk_3d, RollingDisk3D as RollingDisk3D
 from ._suslov import suslov as suslov, Suslov as Suslov
 from ._gearbox import gearbox as gearbox, Gearbox as Gearbox
+from ._differential_drive import (
+    differential_drive as differential_drive,
+    DifferentialDrive as DifferentialDrive,
+    torque_at as torque_at,
+)
 
 # Every example by its name; each is made with its default parameters by calling its class.
 EXAMPLES: dict[str, type[AbstractExample]] = {
     example.name: example
-    for example in (Gearbox, ChaoticQuartic, ChaplyginSleigh, RollingDisk, Suslov, ContactOscillator, RollingDisk3D)
+    for example in (
+        Gearbox, ChaoticQuartic, ChaplyginSleigh, RollingDisk, Suslov, ContactOscillator, RollingDisk3D, DifferentialDrive
+    )
 }

@@ -12,6 +12,15 @@ $X_1 = \partial_\theta/\sqrt{J + ma^2}$,
 $X_2 = (\cos\theta\,\partial_{x_1} + \sin\theta\,\partial_{x_2})/\sqrt{m}$. Adapted state
 $(x_1, x_2, \theta, \rho_1, \rho_2)$, $\mathcal{H} = \tfrac12(\rho_1^2 + \rho_2^2)$ and the
 structure $\Pi(\theta, \rho_1)$ printed in §4.2, with $C^1_{12} = a\sqrt{m}/(J + ma^2)$.
+
+**Friction along the blade** (`blade_friction` $= c \ge 0$): a viscous force
+$-c\,(e\cdot\dot x)\,e$ on the contact point along the blade's direction
+$e = (\cos\theta, \sin\theta)$, the Rayleigh function $\tfrac12c\,(e\cdot\dot x)^2$,
+$D = c\begin{pmatrix} ee^T & 0 \\ 0 & 0\end{pmatrix}$ (the sideways force is the
+constraint's). In the frame, $X_2^TDX_2 = c/m$ and $X_1^TDX = 0$:
+$R = \operatorname{diag}(0, 0, 0, 0, c/m)$ acts on $\rho_2$, the momentum along the
+blade, and the sleigh comes to rest instead of approaching the straight-line motion of Proposition 4.1. With
+$c = 0$ (the default) the system is conservative.
 """
 
 from typing import ClassVar
@@ -23,7 +32,7 @@ from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from .._adapted import adapted_structure, adapted_to_momentum, momentum_to_adapted
 from ._example import AbstractExample
-from ._parameters import parameters, require_finite, require_positive
+from ._parameters import is_concrete_zero, parameters, require_finite, require_non_negative, require_positive
 
 
 _NAME = "Chaplygin sleigh"
@@ -93,6 +102,21 @@ def _lagrangian(q, qdot, args):
     return 0.5 * qdot @ _metric(q, args) @ qdot
 
 
+def _blade_friction(q, qdot, args):
+    (friction,) = parameters(args, ("blade_friction",), _NAME)
+    e = jnp.stack([jnp.cos(q[2]), jnp.sin(q[2]), jnp.zeros_like(q[2])])
+    return friction * jnp.outer(e, e)
+
+
+def _blade_friction_canonical(q, p, args):
+    return _blade_friction(q, None, args)
+
+
+def _blade_friction_adapted(x, args):
+    friction, m = parameters(args, ("blade_friction", "m"), _NAME)
+    return jnp.diag(jnp.array([0.0, 0.0, 0.0, 0.0, 1.0], x.dtype)) * (friction / m)
+
+
 def _constraints(q, args):
     del args
     theta = q[2]
@@ -107,6 +131,7 @@ class ChaplyginSleigh(AbstractExample):
     J: float = 8.0
     a: float = 1.0
     m: float = 1.0
+    blade_friction: float = 0.0
 
     name: ClassVar[str] = "sleigh"
     title: ClassVar[str] = "the Chaplygin sleigh of §4.2 (Figure 2), from Figure 2's start next to the unstable equilibrium"
@@ -114,23 +139,35 @@ class ChaplyginSleigh(AbstractExample):
     def __check_init__(self):
         require_positive(_NAME, J=self.J, m=self.m)
         require_finite(_NAME, a=self.a)
+        require_non_negative(_NAME, blade_friction=self.blade_friction)
+
+    def _rubs(self) -> bool:
+        """Whether the systems carry the blade's friction: unless it is a concrete 0, so
+        that the frictionless sleigh is the conservative system itself."""
+        return not is_concrete_zero(self.blade_friction)
 
     @property
     def adapted(self) -> SkewGradientSystem:
-        """The reduced equations (dynamical) in $(x_1, x_2, \\theta, \\rho_1, \\rho_2)$."""
-        return SkewGradientSystem(_hamiltonian, _structure)
+        """The reduced equations (dynamical) in $(x_1, x_2, \\theta, \\rho_1, \\rho_2)$,
+        with $R$ on $\\rho_2$ for friction along the blade."""
+        return SkewGradientSystem(_hamiltonian, _structure, dissipation=_blade_friction_adapted if self._rubs() else None)
 
     @property
     def canonical(self) -> NonholonomicSystem:
         """The sleigh in canonical coordinates, $H = \\tfrac12 p^T M(\\theta)^{-1} p$ with
-        the printed metric."""
-        return NonholonomicSystem(_canonical_hamiltonian, _constraints)
+        the printed metric, and the blade's friction $D$."""
+        return NonholonomicSystem(
+            _canonical_hamiltonian, _constraints, dissipation=_blade_friction_canonical if self._rubs() else None
+        )
 
     @property
     def canonical_from_lagrangian(self) -> NonholonomicSystem:
         r"""The same system from its Lagrangian, the kinetic energy
-        $L = \tfrac12\dot q^TM(q)\dot q$ (`NonholonomicSystem.from_lagrangian`)."""
-        return NonholonomicSystem.from_lagrangian(_lagrangian, _constraints)
+        $L = \tfrac12\dot q^TM(q)\dot q$ (`NonholonomicSystem.from_lagrangian`), and the
+        Rayleigh function of the blade's friction."""
+        return NonholonomicSystem.from_lagrangian(
+            _lagrangian, _constraints, dissipation=_blade_friction if self._rubs() else None
+        )
 
     @staticmethod
     def constraints(q: Float[Array, "3"], args) -> Float[Array, "1 3"]:
@@ -166,6 +203,7 @@ class ChaplyginSleigh(AbstractExample):
         return q, adapted_to_momentum(_frame(q, args), _metric(q, args), x[3:])
 
 
-def chaplygin_sleigh(J=8.0, a=1.0, m=1.0) -> ChaplyginSleigh:
-    """The Chaplygin sleigh of §4.2 (see `ChaplyginSleigh`)."""
-    return ChaplyginSleigh(J=J, a=a, m=m)
+def chaplygin_sleigh(J=8.0, a=1.0, m=1.0, blade_friction=0.0) -> ChaplyginSleigh:
+    """The Chaplygin sleigh of §4.2 (see `ChaplyginSleigh`), with friction along the
+    blade if `blade_friction` is positive."""
+    return ChaplyginSleigh(J=J, a=a, m=m, blade_friction=blade_friction)

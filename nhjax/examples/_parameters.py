@@ -32,3 +32,17 @@ def require_finite(example: str, **values) -> None:
     for name, value in values.items():
         if not isinstance(value, jax.core.Tracer) and not math.isfinite(float(value)):
             raise ValueError(f"The {example}'s {name} must be finite, got {name}={value}.")
+
+
+def require_non_negative(example: str, **values) -> None:
+    """A `ValueError` for a concrete parameter that is negative or not finite."""
+    require_finite(example, **values)
+    for name, value in values.items():
+        if not isinstance(value, jax.core.Tracer) and float(value) < 0:
+            raise ValueError(f"The {example}'s {name} must not be negative, got {name}={value}.")
+
+
+def is_concrete_zero(value) -> bool:
+    """Whether `value` is known to be 0 when a system is built (a traced value is not):
+    a friction or resistance that is, leaves the system conservative."""
+    return not isinstance(value, jax.core.Tracer) and float(value) == 0.0
