@@ -184,20 +184,38 @@ class SkewGradientSystem(AbstractSystem):
     def field(self, t, y, args):
         gradient = self.gradient(y, args)
         field = self.structure(y, args) @ gradient
+        applied = self.applied_force(t, y, args, gradient)
+        return field if applied is None else field + applied
+
+    def applied_force(self, t, x, args, gradient=None) -> Float[Array, " N"] | None:
+        r"""$-R(x)\,
+abla H + g(t, x)$, what the dissipation and the force add to the
+        field, with $
+abla H(x)$ or a method's discrete `gradient`; `None` for a
+        conservative system."""
+        if not self.is_forced():
+            return None
+        gradient = self.gradient(x, args) if gradient is None else gradient
+        applied = jnp.zeros_like(gradient)
         if self.dissipation is not None:
-            field = field - self.dissipation(y, args) @ gradient
+            applied = applied - self.dissipation(x, args) @ gradient
         if self.force is not None:
-            field = field + self.force(t, y, args)
-        return field
+            applied = applied + self.force(t, x, args)
+        return applied
 
     def energy(self, y, args):
         return self.hamiltonian(y, args)
 
     def power(self, t, y, args):
-        gradient = self.gradient(y, args)
+        return self.power_along(t, y, self.gradient(y, args), args)
+
+    def power_along(self, t, x, gradient, args) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        r"""(supplied, dissipated) $= (w^Tg(t, x),\ w^TR(x)w)$ for a gradient
+        $w$: `power` at $w = \nabla H(x)$, and a method's discrete power at
+        its discrete gradient (times the step, its `exchange`)."""
         zero = jnp.zeros((), gradient.dtype)
-        supplied = zero if self.force is None else gradient @ self.force(t, y, args)
-        dissipated = zero if self.dissipation is None else gradient @ self.dissipation(y, args) @ gradient
+        supplied = zero if self.force is None else gradient @ self.force(t, x, args)
+        dissipated = zero if self.dissipation is None else gradient @ self.dissipation(x, args) @ gradient
         return supplied, dissipated
 
     def check_shapes(self, y0, args):

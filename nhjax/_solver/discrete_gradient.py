@@ -4,7 +4,6 @@ import functools
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
-import jax.numpy as jnp
 import optimistix as optx
 
 from .._discrete_gradient import (
@@ -155,18 +154,11 @@ class DiscreteGradient(AbstractMethod):
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
         field = structure @ gradient
-        zero = jnp.zeros((), gradient.dtype)
-        supplied = dissipated = zero
-        midpoint = 0.5 * (x + x1)
-        if system.dissipation is not None:
-            damping = system.dissipation(midpoint, args) @ gradient
-            field = field - damping
-            dissipated = data.h * (gradient @ damping)
-        if system.force is not None:
-            force = system.force(data.midpoint_time, midpoint, args)
-            field = field + force
-            supplied = data.h * (gradient @ force)
-        return field, (supplied, dissipated)
+        if not system.is_forced():
+            return field, None
+        midpoint, time = 0.5 * (x + x1), data.midpoint_time
+        supplied, dissipated = system.power_along(time, midpoint, gradient, args)
+        return field + system.applied_force(time, midpoint, args, gradient), (data.h * supplied, data.h * dissipated)
 
     def residual(self, u, data, discrete_gradient=None):
         field, _ = self._equations(u, data, discrete_gradient)
