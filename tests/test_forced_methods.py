@@ -34,28 +34,46 @@ FORCED_DISK = nh.NonholonomicSystem(DISK.canonical.hamiltonian, DISK.canonical.c
 DAMPED_DISK = nh.NonholonomicSystem(DISK.canonical.hamiltonian, DISK.canonical.constraints, _damping)
 
 
-def _reduced(system, y0, args):
-    """The reduced form (a `SkewGradientSystem` carrying R and g) and the start in it,
-    for `nhjax.DiscreteGradient`, with the map back to (q, p)."""
-    signs = system.frame_signs(y0[0], args)
-    return (
-        system.reduced(signs),
-        system.to_reduced(y0, args, signs),
-        jax.vmap(lambda zeta: system.from_reduced(zeta, args, signs)),
-    )
+# The same disk in adapted coordinates x = (q, rho), for `nhjax.DiscreteGradient`: with the
+# frame X = (X_1, X_2), X_1 rolling (phi), X_2 turning (theta), R = diag(0, X^T D X) and
+# g = (0, X^T F) by hand.
+def _adapted_damping(x, args):
+    return jnp.diag(jnp.array([0.0, 0.0, 0.0, 0.0, 0.2, 0.3], x.dtype)) * (1 + x[2] ** 2)
 
 
-def _run(name, method, system, y0, dt, n_steps, args, **kwargs):
-    """`nhjax.integrate` of the canonical system, or of its reduced form for the methods
-    of skew-gradient systems, with the saves mapped back to (q, p)."""
-    if getattr(method, "term_structure", None) is not nh.SkewGradientSystem:
-        return nh.integrate(system, method, y0, dt, n_steps, args, **kwargs)
-    reduced, zeta0, back = _reduced(system, y0, args)
-    solution = nh.integrate(reduced, method, zeta0, dt, n_steps, args, **kwargs)
-    return nh.Solution(
-        solution.ts, back(solution.ys), solution.energy, None, solution.result, solution.stats,
-        solution.work, solution.dissipated,
-    )
+def _adapted_torques(t, x, args):
+    return jnp.zeros_like(x).at[4].set(0.5 * jnp.cos(x[2])).at[5].set(jnp.sin(t))
+
+
+FORCED_DISK_ADAPTED = nh.SkewGradientSystem(
+    DISK.adapted.hamiltonian, DISK.adapted.structure, _adapted_damping, _adapted_torques
+)
+DAMPED_DISK_ADAPTED = nh.SkewGradientSystem(DISK.adapted.hamiltonian, DISK.adapted.structure, _adapted_damping)
+
+
+def test_the_adapted_disk_is_the_canonical_one():
+    """The forced disk's two forms: the same energy and the same power, supplied and
+    dissipated, at states and times that correspond."""
+    for theta, t in ((0.2, 0.0), (1.1, 2.5)):
+        y, x = DISK.start("canonical", theta=theta), DISK.start("adapted", theta=theta)
+        np.testing.assert_allclose(FORCED_DISK.energy(y, DISK.args), FORCED_DISK_ADAPTED.energy(x, DISK.args), rtol=1e-15)
+        np.testing.assert_allclose(
+            FORCED_DISK.power(t, y, DISK.args), FORCED_DISK_ADAPTED.power(t, x, DISK.args), rtol=1e-14, atol=1e-15
+        )
+
+
+def _takes_adapted(method) -> bool:
+    return getattr(method, "term_structure", None) is nh.SkewGradientSystem
+
+
+def _disk_run(method, forced, dt, n_steps, **kwargs):
+    """`nhjax.integrate` of the forced (or only damped) disk from theta = 0.2, in the form
+    the method takes."""
+    if _takes_adapted(method):
+        system, start = (FORCED_DISK_ADAPTED if forced else DAMPED_DISK_ADAPTED), DISK.start("adapted", theta=0.2)
+    else:
+        system, start = (FORCED_DISK if forced else DAMPED_DISK), DISK.start("canonical", theta=0.2)
+    return nh.integrate(system, method, start, dt, n_steps, DISK.args, **kwargs)
 
 
 BALANCED = {
@@ -73,43 +91,41 @@ def test_the_discrete_power_balance_holds_to_roundoff(name):
     H(y_k) - H(y_0) = W_k - D_k to roundoff at every save, as the discrete gradient
     (or the projection onto the balance) makes it; with the damping alone the energy
     never increases from one step to the next."""
-    y0 = DISK.start("canonical", theta=0.2)
-    solution = _run(name, BALANCED[name], FORCED_DISK, y0, 0.01, 10_000, DISK.args, save_every=100)
+    solution = _disk_run(BALANCED[name], True, 0.01, 10_000, save_every=100)
     scale = 1 + float(jnp.max(jnp.abs(solution.energy)))
     balance = solution.energy - solution.energy[0] - (solution.work - solution.dissipated)
     assert float(jnp.max(jnp.abs(balance))) / scale < 1e-12, float(jnp.max(jnp.abs(balance)))
     assert float(solution.work[-1]) > 1 and float(solution.dissipated[-1]) > 1  # both matter
     assert bool(jnp.all(jnp.diff(solution.dissipated) >= 0))
-    damped = _run(name, BALANCED[name], DAMPED_DISK, y0, 0.01, 1000, DISK.args)
+    damped = _disk_run(BALANCED[name], False, 0.01, 1000)
     rises = jnp.diff(damped.energy)
     eps = float(jnp.finfo(rises.dtype).eps)
     assert float(jnp.max(rises)) <= 8 * eps * float(damped.energy[0])
     assert float(damped.energy[-1]) < 0.5 * float(damped.energy[0])
 
 
-def _order_case(system, y0, args, t1):
-    reference = nh.integrate_adaptive(system, y0, t1, args, **REFERENCE)
-    final = jax.tree.map(lambda y: y[-1], reference.ys)
-    return final, float(reference.work[-1]), float(reference.dissipated[-1])
-
-
 ORDER_CASES = {
     "differential drive": (ROBOT.canonical, ROBOT.start("canonical"), ROBOT.args, 2.0, (0.2, 0.1, 0.05)),
     "disk, sin t and damping": (FORCED_DISK, DISK.start("canonical", theta=0.2), DISK.args, 1.0, (0.1, 0.05, 0.025)),
+    "disk, sin t and damping, adapted": (
+        FORCED_DISK_ADAPTED, DISK.start("adapted", theta=0.2), DISK.args, 1.0, (0.1, 0.05, 0.025)
+    ),
 }
 
 
-def _fitted_orders(name, method, case):
+def _fitted_orders(method, case):
     """The fitted orders of the state at t1 and of the ledger's work and dissipated
     energy against the Dopri8 reference, which integrates v^T F and v^T D v along the
     index-1 flow; and the largest constraint residual of the runs."""
     system, y0, args, t1, sizes = ORDER_CASES[case]
-    final, work, dissipated = _order_case(system, y0, args, t1)
+    reference = nh.integrate_adaptive(system, y0, t1, args, **REFERENCE)
+    final = jax.tree.leaves(jax.tree.map(lambda y: y[-1], reference.ys))
+    work, dissipated = float(reference.work[-1]), float(reference.dissipated[-1])
     errors, ledger_errors, constraint = [], [], 0.0
+    bound = round(t1 / min(sizes))  # one compiled program for every step size
     for h in sizes:
-        n = round(t1 / h)
-        solution = _run(name, method, system, y0, h, n, args, save_every=n)
-        state = jax.tree.map(lambda y: y[-1], solution.ys)
+        solution = nh.integrate(system, method, y0, h, round(t1 / h), args, save_every=bound, max_steps=bound)
+        state = jax.tree.leaves(jax.tree.map(lambda y: y[-1], solution.ys))
         errors.append(max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(state, final)))
         ledger_errors.append(
             max(abs(float(solution.work[-1]) - work), abs(float(solution.dissipated[-1]) - dissipated))
@@ -121,10 +137,13 @@ def _fitted_orders(name, method, case):
 
 @pytest.mark.parametrize("name", list(METHODS))
 def test_every_method_is_second_order_with_forces(name):
-    """On the differential-drive robot (torques, bearing friction): order 2 in the state
-    and in the ledger against the reference, and the constraint to roundoff for the
-    methods that keep it."""
-    state_order, ledger_order, constraint = _fitted_orders(name, METHODS[name], "differential drive")
+    """On the differential-drive robot (torques, bearing friction), and for the methods
+    of skew-gradient systems on the forced disk in adapted coordinates: order 2 in the
+    state and in the ledger against the reference, and the constraint to roundoff for
+    the methods that keep it."""
+    method = METHODS[name]
+    case = "disk, sin t and damping, adapted" if _takes_adapted(method) else "differential drive"
+    state_order, ledger_order, constraint = _fitted_orders(method, case)
     assert 1.7 <= state_order <= 2.6, state_order
     assert 1.7 <= ledger_order <= 2.6, ledger_order
     if name in KEEPS_CONSTRAINT or name == "gonzalez-r-central-difference":
@@ -137,7 +156,7 @@ def test_orders_with_a_time_dependent_force(name, order):
     order of GONZALEZ-R and SPARK (whose stages see their own times), and 4 for the
     composition, whose substeps must see theirs."""
     method = BALANCED.get(name) or METHODS[name]
-    state_order, ledger_order, _ = _fitted_orders(name, method, "disk, sin t and damping")
+    state_order, ledger_order, _ = _fitted_orders(method, "disk, sin t and damping")
     assert order - 0.3 <= state_order <= order + 0.6, state_order
     assert order - 0.3 <= ledger_order <= order + 0.6, ledger_order
 
@@ -174,18 +193,13 @@ def test_no_force_and_no_damping_run_as_the_conservative_system():
         assert float(jnp.max(jnp.abs(forced.work))) == 0 and float(jnp.max(jnp.abs(forced.dissipated))) == 0
 
 
-def _robot_run(torques, method=None, n_steps=40):
-    """The robot under piecewise-constant torques (4 pieces over T = 2, steps of 0.05
-    that divide them)."""
-    robot = nh.examples.differential_drive(torques=torques, duration=2.0)
-    return nh.integrate(
-        robot.canonical, method or nh.GonzalezR(), robot.start("canonical"), 0.05, n_steps, robot.args,
-        save_every=n_steps, throw=False,
-    )
-
-
 def _robot_outcome(torques):
-    solution = _robot_run(torques)
+    """The final pose and energy exchange of the robot under piecewise-constant
+    torques (4 pieces over T = 2, steps of 0.05 that divide them), in one number."""
+    robot = nh.examples.differential_drive(torques=torques, duration=2.0)
+    solution = nh.integrate(
+        robot.canonical, nh.GonzalezR(), robot.start("canonical"), 0.05, 40, robot.args, save_every=40, throw=False
+    )
     q = solution.ys[0][-1]
     return q[0] + 2 * q[1] + q[2] + solution.work[-1] - solution.dissipated[-1]
 
@@ -280,8 +294,11 @@ def test_the_rolling_resistance_and_the_blade_friction_in_every_form():
     )
     sizes = (0.2, 0.1, 0.05)
     errors = []
+    bound = round(2.0 / min(sizes))
     for h in sizes:
-        n = round(2.0 / h)
-        run = nh.integrate(disk.canonical, nh.GonzalezR(), disk.start("canonical", theta=0.2), h, n, disk.args, save_every=n)
+        run = nh.integrate(
+            disk.canonical, nh.GonzalezR(), disk.start("canonical", theta=0.2), h, round(2.0 / h), disk.args,
+            save_every=bound, max_steps=bound,
+        )
         errors.append(float(jnp.max(jnp.abs(run.ys[0][-1] - disk.exact_solution(2.0, x0)[:4]))))
     assert 1.8 <= fitted_order(sizes, errors) <= 2.3
