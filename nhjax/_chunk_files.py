@@ -73,9 +73,9 @@ def chunk_arrays(solution, *, keep_first, time_axis) -> dict[str, np.ndarray]:
     """A chunk's saves (without the first unless `keep_first`) and stats, as NumPy."""
     saves = dict(ts=solution.ts, energy=solution.energy)
     saves.update({f"y_{i}": leaf for i, leaf in enumerate(jax.tree.leaves(solution.ys))})
-    for name in ("constraint",) + _LEDGER:
-        if getattr(solution, name) is not None:
-            saves[name] = getattr(solution, name)
+    saves.update({name: getattr(solution, name) for name in _LEDGER})
+    if solution.constraint is not None:
+        saves["constraint"] = solution.constraint
     start = 0 if keep_first else 1
     chunk = {
         name: np.take(np.asarray(array), np.arange(start, array.shape[time_axis]), axis=time_axis)
@@ -141,7 +141,9 @@ def load_verified(path: pathlib.Path, identity: dict, expected_saves: int, time_
             )
         elif str(found["start"]) != identity["start"]:
             problem = "starts from another state than the end of the chunk before it"
-        elif "ts" not in stored or stored["ts"].shape[time_axis] != expected_saves:
+        elif any(name not in stored for name in ("ts", "energy", *_LEDGER)):
+            problem = "lacks saves a chunk holds (written by an older version of nhjax)"
+        elif stored["ts"].shape[time_axis] != expected_saves:
             problem = f"does not hold the {expected_saves} saves of this chunk"
     if problem is None:
         return {name: array for name, array in stored.items() if not name.startswith("chunk_")}
@@ -198,7 +200,7 @@ def join_chunks(chunks, treedef, n_saved, time_axis) -> Solution:
         constraint=joined("constraint") if "constraint" in chunks[0] else None,
         result=_result(result),
         stats=stats,
-        **{name: summed(name) if name in chunks[0] else None for name in _LEDGER},
+        **{name: summed(name) for name in _LEDGER},
     )
 
 

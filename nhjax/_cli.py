@@ -211,9 +211,10 @@ def _simulate(arguments, n_steps: int) -> int:
     # in which the constraint holds by construction.
     states = dict(zip(("q", "p"), solution.ys)) if isinstance(solution.ys, tuple) else dict(x=solution.ys)
     trajectory = dict(ts=solution.ts, **states, energy=solution.energy)
-    for name in ("constraint", "work", "dissipated"):
-        if getattr(solution, name) is not None:
-            trajectory[name] = getattr(solution, name)
+    if solution.constraint is not None:
+        trajectory["constraint"] = solution.constraint
+    if system.is_forced():  # a conservative run's ledger is zeros: not worth a file
+        trajectory.update(work=solution.work, dissipated=solution.dissipated)
     trajectory = {name: np.asarray(values) for name, values in trajectory.items()}
     try:
         write_atomically(out, lambda file: np.savez(file, **trajectory))
@@ -252,13 +253,14 @@ def _simulate(arguments, n_steps: int) -> int:
 
 def _disk_shortfall(out: pathlib.Path, system, y0, args, saves: int) -> str | None:
     """Why the saves cannot fit on the disk of `out`, or `None`: each save holds t, the
-    state, the energy and any constraint residual in float64, written twice (the
-    chunks, then the trajectory)."""
+    state, the energy, any constraint residual and the energy ledger (work, dissipated)
+    in float64, written twice (the chunks, then the trajectory; an upper bound, as a
+    conservative trajectory's file leaves the ledger out)."""
     import jax
 
     state = sum(leaf.size for leaf in jax.tree.leaves(y0))
     rows = system.constraints(y0[0], args).shape[0] if hasattr(system, "constraints") else 0
-    needed = 2 * saves * 8 * (2 + state + rows)
+    needed = 2 * saves * 8 * (4 + state + rows)
     folder = out.absolute().parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent

@@ -34,12 +34,14 @@ class Solution(eqx.Module):
         all), `max_root_find_steps` (most iterations in one step); for an
         `nhjax.Composition`, also `substep_root_find_steps` and `failed_substep` (see
         there).
-    - `work`, `dissipated`: for a system with a force or a dissipation
-        (`AbstractSystem.is_forced`), the energy the force supplied and the energy the
+    - `work`, `dissipated`: the energy the force supplied and the energy the
         dissipation removed from `t0` to each save, shape `(n_saved,)`, so that
-        `energy - energy[0] == work - dissipated` (to the method's accuracy); `None` for
-        a conservative system, where both are zero, as `constraint` is `None` for a
-        system without constraints: nothing is computed or stored for them.
+        `energy - energy[0] == work - dissipated` (to the method's accuracy). For a
+        system with a force or a dissipation (`AbstractSystem.is_forced`) each method
+        computes them from its own discrete quantities during the run; for a
+        conservative system both are zeros, filled in after the run (nothing is carried
+        through the steps), and NaN from a failed trajectory's first bad save on, as
+        every other output.
     """
 
     ts: Float[Array, " n_saved"]
@@ -48,8 +50,8 @@ class Solution(eqx.Module):
     constraint: Float[Array, "n_saved k"] | None
     result: RESULTS
     stats: dict[str, Array]
-    work: Float[Array, " n_saved"] | None = None
-    dissipated: Float[Array, " n_saved"] | None = None
+    work: Float[Array, " n_saved"]
+    dissipated: Float[Array, " n_saved"]
 
 
 def solution_from_saves(ts, saved, result: RESULTS, stats, sources) -> Solution:
@@ -62,6 +64,8 @@ def solution_from_saves(ts, saved, result: RESULTS, stats, sources) -> Solution:
     every save is NaN. A failed trajectory's outputs have NaN derivatives with respect
     to everything it was computed from (`sources`: y0, dt, t0, args)."""
     ys, observed = saved
+    # A conservative run's ledger is zero; it is filled in here, not carried by the steps.
+    observed = {"work": jnp.zeros_like(observed["energy"]), "dissipated": jnp.zeros_like(observed["energy"])} | observed
     bad = nonfinite_saves((ys, observed))
     result = first_failure(
         result, RESULTS.where(jnp.any(bad), RESULTS.nonfinite_step, RESULTS.successful)
@@ -80,8 +84,8 @@ def solution_from_saves(ts, saved, result: RESULTS, stats, sources) -> Solution:
         constraint=observed.get("constraint"),
         result=result,
         stats=stats,
-        work=observed.get("work"),
-        dissipated=observed.get("dissipated"),
+        work=observed["work"],
+        dissipated=observed["dissipated"],
     )
 
 

@@ -28,7 +28,9 @@ def _chunked(directory, y0=Y0):
 
 
 def _bits(solution):
-    leaves = jax.tree.leaves((solution.ts, solution.ys, solution.energy, solution.constraint))
+    leaves = jax.tree.leaves(
+        (solution.ts, solution.ys, solution.energy, solution.constraint, solution.work, solution.dissipated)
+    )
     return [np.asarray(leaf).tobytes() for leaf in leaves]
 
 
@@ -79,6 +81,15 @@ def _missing(path, _):
     path.unlink()
 
 
+def _without_ledger(path, _):
+    """A chunk as an older version wrote it, without the energy ledger, validly
+    checksummed."""
+    with np.load(path) as chunk:
+        arrays = {name: chunk[name] for name in chunk.files if name not in ("work", "dissipated", "checksum")}
+    identity = {key[len("chunk_"):]: arrays.pop(key).item() for key in list(arrays) if key.startswith("chunk_")}
+    np.savez(path, **with_identity(arrays, identity))
+
+
 # name: (what to do to chunk 1, what the warning says)
 CORRUPTIONS = {
     "truncated": (_truncate, "cannot be read"),
@@ -88,6 +99,7 @@ CORRUPTIONS = {
     "swapped": (_swap, r"holds chunk 2 \(steps 200 to 300\), not chunk 1 \(steps 100 to 200\)"),
     "foreign": (_foreign, "belongs to another run"),
     "missing": (_missing, None),
+    "older": (_without_ledger, "lacks saves a chunk holds"),
 }
 
 
