@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._adapted import adapted_structure
-from ._householder import HouseholderFrame
+from ._householder import FormedFrame, HouseholderFrame
 from ._linalg import product, solve_spd
 
 
@@ -298,6 +298,57 @@ class ReducedSystem(eqx.Module):
         if not (self._identity_metric() and self.derivative == "autodiff"):
             grad_q = grad_q - transpose_times(y)
         return ReducedPoint(frame, p, jnp.concatenate([grad_q, y]), times, transpose_times)
+
+    def field_jacobian(self, zeta, t, args) -> Float[Array, "N N"]:
+        r"""An approximation of the derivative of the field $\Pi\nabla\mathcal{H}$ (plus
+        the applied force in the frame, at time `t`) at $\zeta$, with the frame held to
+        first order, for chord matrices (`nhjax.GonzalezR.chord_jacobian`):
+
+        - the momentum, the velocity $y$ and $\partial_qH$ vary exactly, by
+          `jax.jacfwd` with the frame formed once at $q$
+          (`nhjax._householder.FormedFrame`): with $M = I$ this is
+          $\begin{pmatrix} 0 & X \\ -X^T\partial_q^2V & 0\end{pmatrix}$;
+        - the frame moves out of $\mathcal{D}$ as $\ker A$ does:
+          $X(q + \delta) \approx X - A^+\,\partial A[\delta]\,X$, $A^+ =
+          A^T(AA^T)^{-1}$, which keeps $A X = 0$ to first order and needs derivatives of
+          $A$ only ($A(q)v$ and $A(q)^T\lambda$ along $n$ tangents), not of the QR;
+        - left out: the frame's rotation within $\mathcal{D}$ ($X^T\partial X$, which
+          the Householder construction fixes), the block $B$ and the term
+          $J^Ty$ of (eq:Htgrad), all derivatives of the QR.
+
+        Those would take $n$ tangents (or $n$ shifted factorisations) through the
+        QR, $O(n^2k^2)$ work: GONZALEZ-R's cost grew like $n^4$ with them
+        (`benchmarks/scaling.py`)."""
+        system = self.system
+        q, _ = split_reduced(zeta, self.signs)
+        frame = FormedFrame(self.frame(q, args).matrix())
+
+        def field_in_fixed_frame(z):
+            x, rho = split_reduced(z, self.signs)
+            p, y = self.momentum_in_frame(x, frame, rho, args)
+            force = self.position_gradient(x, p, args)
+            field = jnp.concatenate([frame.times(y), -frame.transpose_times(force)])
+            if system.is_forced():
+                applied = system.applied_force(t, x, p, args, frame.times(y))
+                field = field.at[q.shape[0] :].add(frame.transpose_times(applied))
+            return field, (y, force)
+
+        jacobian, (y, force) = jax.jacfwd(field_in_fixed_frame, has_aux=True)(zeta)
+        a = system.constraints(q, args)
+        gram = a @ a.T
+        velocity = frame.times(y)
+        multiplier = solve_spd(gram, a @ force)
+        along_velocity, along_multiplier = jax.jacfwd(
+            lambda x: (system.constraints(x, args) @ velocity, system.constraints(x, args).T @ multiplier)
+        )(q)
+        frame_motion = jnp.concatenate(
+            [-a.T @ solve_spd(gram, along_velocity), frame.transpose_times(along_multiplier)]
+        )
+        # Where A has lost rank, A^+ is undefined and the step fails on the rank check
+        # at its end (`NonholonomicSystem.step_result`): the matrix goes without the
+        # term rather than turn the iteration's arithmetic to NaN first.
+        frame_motion = jnp.where(jnp.isfinite(frame_motion), frame_motion, 0.0)
+        return jacobian.at[:, : q.shape[0]].add(frame_motion)
 
     def structure_and_gradient(self, zeta, args) -> tuple[Float[Array, "N N"], Float[Array, " N"]]:
         r"""$\Pi(\zeta)$, formed from $X$ and $B = JX - (JX)^T$ (PiMat), (skewMat), and

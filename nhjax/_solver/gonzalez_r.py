@@ -33,7 +33,6 @@ steps against the implicit-midpoint yardstick and the NumPy route by
 
 from typing import Any, ClassVar, NamedTuple
 
-import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
@@ -42,10 +41,8 @@ from jaxtyping import Array
 
 from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import Branch, gonzalez_correction
-from .._householder import FormedFrame
-from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
-from .._reduced import check_derivative, Derivative, ReducedSystem, split_reduced
+from .._reduced import check_derivative, Derivative, ReducedSystem
 from .._rare_branch import rarely
 from .chord import REMAINDER
 from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient, resolution_of
@@ -298,23 +295,11 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     def chord_jacobian(self, u, data):
         r"""An approximation of the Jacobian of `simplified_residual`,
         $I - \tfrac h2\,S^{-1}FS$ at $\bar\zeta = \zeta + Su/2$, where $F$ is the
-        derivative of $\Pi\nabla\mathcal{H}$ with the frame held to first order:
+        derivative of $\Pi\nabla\mathcal{H}$ with the frame held to first order
+        (`nhjax._reduced.ReducedSystem.field_jacobian`), from derivatives of $H$ and $A$
+        but none of the QR.
 
-        - the momentum, the velocity $y$ and $\partial_qH$ vary exactly, by
-          `jax.jacfwd` with the frame formed once at $\bar q$
-          (`nhjax._householder.FormedFrame`): with $M = I$ this is
-          $\begin{pmatrix} 0 & X \\ -X^T\partial_q^2V & 0\end{pmatrix}$;
-        - the frame moves out of $\mathcal{D}$ as $\ker A$ does:
-          $X(\bar q + \delta) \approx X - A^+\,\partial A[\delta]\,X$, $A^+ =
-          A^T(AA^T)^{-1}$, which keeps $A X = 0$ to first order and needs derivatives of
-          $A$ only ($A(q)v$ and $A(q)^T\lambda$ along $n$ tangents), not of the QR;
-        - left out: the frame's rotation within $\mathcal{D}$ ($X^T\partial X$, which
-          the Householder construction fixes), the block $B$ and the term
-          $J^Ty$ of (eq:Htgrad), all derivatives of the QR.
-
-        Those would take $n$ tangents (or $n$ shifted factorisations) through the
-        QR at every step, $O(n^2k^2)$ work: GONZALEZ-R's cost grew like $n^4$ with them
-        (`benchmarks/scaling.py`). What is left out is $O(h)$ in the chord
+        What $F$ leaves out is $O(h)$ in the chord
         iteration's contraction factor, against $O(h^3)$ for the exact matrix, and the
         iteration goes on until the error it leaves is below the rounding
         (`chord_remainder`). Iterations per step, with the matrix that carries the
@@ -325,37 +310,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         The root does not depend on the matrix, and derivatives of the root do not use
         it (see `nhjax._solver.chord`)."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
-        system = reduced.system
-        midpoint = zeta + 0.5 * scale * u
-        q, _ = split_reduced(midpoint, reduced.signs)
-        frame = FormedFrame(reduced.frame(q, args).matrix())
-
-        def field_in_fixed_frame(z):
-            x, rho = split_reduced(z, reduced.signs)
-            p, y = reduced.momentum_in_frame(x, frame, rho, args)
-            force = reduced.position_gradient(x, p, args)
-            field = jnp.concatenate([frame.times(y), -frame.transpose_times(force)])
-            if system.is_forced():
-                applied = system.applied_force(data.midpoint_time, x, p, args, frame.times(y))
-                field = field.at[q.shape[0] :].add(frame.transpose_times(applied))
-            return field, (y, force)
-
-        field_jacobian, (y, force) = jax.jacfwd(field_in_fixed_frame, has_aux=True)(midpoint)
-        a = system.constraints(q, args)
-        gram = a @ a.T
-        velocity = frame.times(y)
-        multiplier = solve_spd(gram, a @ force)
-        along_velocity, along_multiplier = jax.jacfwd(
-            lambda x: (system.constraints(x, args) @ velocity, system.constraints(x, args).T @ multiplier)
-        )(q)
-        frame_motion = jnp.concatenate(
-            [-a.T @ solve_spd(gram, along_velocity), frame.transpose_times(along_multiplier)]
-        )
-        # Where A has lost rank, A^+ is undefined and the step fails on the rank check
-        # at its end (`NonholonomicSystem.step_result`): the matrix goes without the
-        # term rather than turn the iteration's arithmetic to NaN first.
-        frame_motion = jnp.where(jnp.isfinite(frame_motion), frame_motion, 0.0)
-        field_jacobian = field_jacobian.at[:, : q.shape[0]].add(frame_motion)
+        field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
 
     def resolution(self, data):
