@@ -20,6 +20,7 @@ from ._solver import (
     Composition as Composition,
     COMPOSITION_SCHEMES as COMPOSITION_SCHEMES,
     DiscreteGradient as DiscreteGradient,
+    EnergyPreservingCollocation as EnergyPreservingCollocation,
     GonzalezF as GonzalezF,
     GonzalezR as GonzalezR,
     IDLA as IDLA,

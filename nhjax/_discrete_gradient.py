@@ -242,6 +242,34 @@ def _validated_difference(operands):
     return jnp.where(jnp.abs(difference - printed) <= _AGREEMENT * rounding, difference, printed)
 
 
+def value_difference(
+    f: ScalarFunction,
+    x: Float[Array, " N"],
+    x1: Float[Array, " N"],
+    args: Any = None,
+    *,
+    branch: Branch = "cond",
+    f_x: Float[Array, ""] | None = None,
+    f_x1: Float[Array, ""] | None = None,
+    segment: tuple | None = None,
+) -> Float[Array, ""]:
+    r"""$D = f(x') - f(x)$ as `gonzalez_correction` takes it: the difference of the
+    values (`f_x`, `f_x1`, computed here where not given) or, for nearly equal points,
+    `segment_difference(*segment, args)` where it agrees with the values' difference
+    to a few roundings (`_validated_difference`). `branch` as there; the derivatives
+    are those of the selected form."""
+    delta = x1 - x
+    f_x = f(x, args) if f_x is None else f_x
+    f_x1 = f(x1, args) if f_x1 is None else f_x1
+    printed = f_x1 - f_x
+    rounding = jax.lax.stop_gradient(float(jnp.finfo(x.dtype).eps) * (jnp.abs(f_x) + jnp.abs(f_x1)))
+    operands = ((Gradient(f), x, x1) if segment is None else segment) + (args, printed, rounding)
+    near = jnp.all(_is_near(x, x1, delta))
+    if branch == "rarely":
+        return rarely(near, _validated_difference, printed, operands)
+    return jax.lax.cond(near, lambda: _validated_difference(operands), lambda: printed)
+
+
 def gonzalez_correction(
     f: ScalarFunction,
     gradient: Float[Array, " N"],

@@ -14,9 +14,11 @@ from typing import Any, Literal, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._adapted import adapted_structure
+from ._dependence import evaluated_inverse_metric, velocity_dependence
 from ._householder import FormedFrame, HouseholderFrame
 from ._linalg import product, solve_spd
 
@@ -76,6 +78,23 @@ def momentum_by_projection(system, q, frame: HouseholderFrame, rho, args):
     multiplier = -solve_spd(a @ k_a_t, a @ k_along_frame)
     p = along_frame + a.T @ multiplier
     return p, frame.transpose_times(k_along_frame + k_a_t @ multiplier)
+
+
+def metric_of(system, y0, args):
+    r"""How a step's `ReducedSystem` finds $M$ (its `metric`): `"position"` where the program of
+    $\partial H/\partial p$ computes something from $q$; else a constant, computed once
+    per step where it is read from `args`, and otherwise known at trace time:
+    `"identity"` or the array (see `nhjax._dependence`)."""
+    q, p = y0
+    on_position, on_args = velocity_dependence(system, q, p, args)
+    if on_position:
+        return "position"
+    if on_args:
+        return system.metric(q, args)
+    inverse = evaluated_inverse_metric(system, q, p, args)
+    if np.array_equal(inverse, np.eye(q.shape[0])):
+        return "identity"
+    return jnp.asarray(np.linalg.inv(inverse), dtype=q.dtype)
 
 
 class ReducedPoint(NamedTuple):

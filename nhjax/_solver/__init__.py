@@ -9,6 +9,7 @@ from .discrete_gradient import (
     DiscreteGradient as DiscreteGradient,
     midpoint_structure as midpoint_structure,
 )
+from .energy_collocation import EnergyPreservingCollocation as EnergyPreservingCollocation
 from .gonzalez_r import GonzalezR as GonzalezR
 from .gonzalez_f import GonzalezF as GonzalezF
 from .idla import IDLA as IDLA

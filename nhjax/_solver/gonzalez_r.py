@@ -14,7 +14,7 @@ one linearisation of $q \mapsto X(q)^Tp$ applied forward and transposed
 forming $J$ takes $n$ tangents of it. For $M = I$, $\mathcal{H}$ and its gradient need
 no frame at all (`nhjax._reduced.ReducedSystem`), so the Gonzalez correction costs no
 QR. Where $\partial H/\partial p$ does not depend on $q$ (checked on its program),
-the metric is a constant (`_metric`). Under `vmap`
+the metric is a constant (`nhjax._reduced.metric_of`). Under `vmap`
 the predictor's Euler branch runs only at the steps where some trajectory needs it
 (`nhjax._rare_branch.rarely`), and the chord iteration's loop runs until the
 slowest trajectory has converged (`benchmarks/gonzalez_r.py` times a batch of 200).
@@ -35,34 +35,15 @@ from typing import Any, ClassVar, NamedTuple
 
 import jax.lax as lax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
-from .._dependence import evaluated_inverse_metric, velocity_dependence
 from .._discrete_gradient import Branch, gonzalez_correction
 from .._nonholonomic import NonholonomicSystem
-from .._reduced import check_derivative, Derivative, ReducedSystem
+from .._reduced import check_derivative, Derivative, metric_of, ReducedSystem
 from .._rare_branch import rarely
 from .chord import REMAINDER
 from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient, resolution_of
-
-
-def _metric(system: NonholonomicSystem, y0, args):
-    r"""How the step's `ReducedSystem` finds $M$: `"position"` where the program of
-    $\partial H/\partial p$ computes something from $q$; else a constant, computed once
-    per step where it is read from `args`, and otherwise known at trace time:
-    `"identity"` or the array (see `nhjax._dependence`)."""
-    q, p = y0
-    on_position, on_args = velocity_dependence(system, q, p, args)
-    if on_position:
-        return "position"
-    if on_args:
-        return system.metric(q, args)
-    inverse = evaluated_inverse_metric(system, q, p, args)
-    if np.array_equal(inverse, np.eye(q.shape[0])):
-        return "identity"
-    return jnp.asarray(np.linalg.inv(inverse), dtype=q.dtype)
 
 
 class _Carry(NamedTuple):
@@ -178,7 +159,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         step = None
         if self.derivative == "central_difference":
             step = jnp.abs(h) if self.difference_step is None else self.difference_step
-        return ReducedSystem(system, signs, self.derivative, step, _metric(system, y0, args))
+        return ReducedSystem(system, signs, self.derivative, step, metric_of(system, y0, args))
 
     def initial_carry(self, system: NonholonomicSystem, y0, args):
         r"""What a step hands the next: its $\zeta'$ and sign choices, and the mean

@@ -36,6 +36,9 @@ STEP_SIZES = (0.2, 0.1, 0.05)
 N_STEPS = 10_000
 T1 = 5.0
 CASES = [(method, start) for method in CANONICAL_METHODS for start in STARTS]
+# The higher-order methods' orders are fitted in their own tests, at step sizes that
+# keep their errors above the reference's.
+SECOND_ORDER_CASES = [(method, start) for method, start in CASES if METHODS[method].order(None) == 2]
 
 
 @functools.cache
@@ -50,9 +53,8 @@ def _reference(start):
     return reference_final_state(example.canonical, y0, T1, example.args)
 
 
-@pytest.mark.parametrize("method, start", CASES)
+@pytest.mark.parametrize("method, start", SECOND_ORDER_CASES)
 def test_second_order_against_the_index1_reference(method, start):
-    assert METHODS[method].order(None) == 2
     errors = errors_at(_runs(method, start), STEP_SIZES, T1, _reference(start))
     assert 1.8 <= fitted_order(STEP_SIZES, errors) <= 2.2, errors
 

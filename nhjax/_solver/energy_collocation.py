@@ -1,0 +1,352 @@
+r"""Energy-preserving collocation of order $2s$ for $\dot x = \Pi(x)\nabla H(x)$, on a
+`SkewGradientSystem` and on the reduced form of a `NonholonomicSystem` (§3.3)."""
+
+from typing import Any, ClassVar, NamedTuple
+
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array
+
+from .._discrete_gradient import Branch, value_difference
+from .._nonholonomic import NonholonomicSystem
+from .._rare_branch import rarely
+from .._reduced import metric_of, ReducedSystem
+from .._system import AbstractSystem, SkewGradientSystem
+from ._collocation_tableau import collocation_tableau, CollocationTableau
+from .base import AbstractMethod, increment_scale, no_gradient, resolution_of
+from .chord import REMAINDER
+
+
+ORDERS = (2, 4, 6, 8)
+
+
+class _Carry(NamedTuple):
+    """What a step hands the next: its end in the coordinates it integrates ($x'$, or
+    $\\zeta'$ on the reduced form, with the frame's signs), its increments $Z_j$ and its
+    signed size, for the predictor (NaN until there are any)."""
+
+    end: Array
+    signs: Array
+    increments: Array
+    step: Array
+
+
+class _StepData(NamedTuple):
+    """What the residual of one step needs (`EnergyPreservingCollocation.setup`)."""
+
+    form: Any  # the SkewGradientSystem, or the step's ReducedSystem
+    x: Array
+    h: Any
+    scale: Array
+    args: Any
+    energy: Array
+    momentum: Array | None
+    t: Any
+
+
+class _Point(NamedTuple):
+    r"""$\nabla H$ at a point, and what products with $\Pi$ there need (a
+    `ReducedPoint` on the reduced form)."""
+
+    gradient: Array
+    reduced: Any
+
+
+def _point(form, x, args) -> _Point:
+    if isinstance(form, ReducedSystem):
+        point = form.at(x, args)
+        return _Point(point.gradient, point)
+    return _Point(jax.grad(form.hamiltonian)(x, args), None)
+
+
+def _stage_field(form, t, x, point: _Point, gradient, args):
+    r"""$(\Pi(x) - R(x))\,$`gradient`$ + g(t, x)$ at a stage, and the power of the force
+    and of the dissipation along `gradient` (`None` for a conservative system)."""
+    if isinstance(form, ReducedSystem):
+        field = point.reduced.structure_times(gradient)
+        return form.with_applied_force(t, x, point.reduced, gradient, field, args)
+    field = form.structure(x, args) @ gradient
+    if not form.is_forced():
+        return field, None
+    return field + form.applied_force(t, x, args, gradient), form.power_along(t, x, gradient, args)
+
+
+class EnergyPreservingCollocation(AbstractMethod):
+    r"""Energy-preserving collocation at $s$ Gauss nodes, order $2s$: symmetric, and
+    exact in the energy (and, on the reduced form of a `NonholonomicSystem`, in the
+    constraint) to roundoff at every step size.
+
+    For $\dot x = \Pi(x)\nabla H(x)$, $\Pi$ skew (a `SkewGradientSystem`, or the reduced
+    equations (dynamical) of a `NonholonomicSystem` in $\zeta = (q, \rho)$, with $\Pi$
+    and $\nabla\mathcal{H}$ from $H$ and $A$ alone, as `nhjax.GonzalezR` evaluates them),
+    the step is the polynomial $u$ of degree $s$ with $u(t_0) = x_0$ and
+
+    $$\dot u(t_0 + c_ih) = \Pi(u(t_0 + c_ih))\,G_i,\qquad
+      G_i = \int_0^1\frac{\ell_i(\tau)}{b_i}\nabla H(u(t_0 + \tau h))\,d\tau,
+      \qquad x_1 = u(t_0 + h)$$
+
+    (Cohen & Hairer, "Linear energy-preserving integrators for Poisson systems", BIT
+    51 (2011) 91; for constant $\Pi$, Hairer, "Energy-preserving variant of collocation
+    methods", JNAIAM 5 (2010) 73). As $\dot u$ is the polynomial of degree $s - 1$
+    through the $K_i = \dot u(t_0 + c_ih)$,
+    $H(x_1) - H(x_0) = h\int_0^1\nabla H(u)^T\dot u\,d\tau = h\sum_ib_iG_i^TK_i
+    = h\sum_ib_iG_i^T\Pi_iG_i = 0$. The method is symmetric for the symmetric Gauss
+    nodes, and of order $2s$.
+
+    **The integral, and exact energy with any quadrature.** $G_i$ is computed by the
+    $r$-point Gauss rule (`quadrature_nodes`, default $r = s$: the gradients at the
+    stage values, no evaluation beyond them), whose error $O(h^{2r})$ would leave
+    the energy wrong by $O(h^{2r+1})$ per step unless $\nabla H^T\dot u$ were a
+    polynomial of degree below $2r$. nhjax removes that error as the Gonzalez
+    discrete gradient does for the midpoint rule: with $\tilde G_i$ the quadrature and
+    $\delta = x_1 - x_0$,
+
+    $$G_i = \tilde G_i + \kappa\,\delta,\qquad
+      \kappa = \frac{H(x_1) - H(x_0) - \sum_ib_i\tilde G_i^TZ_i}{|\delta|^2},
+      \qquad Z_i = hK_i,$$
+
+    so that $\sum_ib_iG_i^TZ_i = H(x_1) - H(x_0)$ holds identically, and with
+    $Z_i = h\Pi_iG_i$ (skew) both sides vanish: the energy is kept to roundoff
+    whatever $H$ is, by the same argument as (discGradEn). The correction is
+    the quadrature's error over $|\delta|^2$, $O(h^{2r - 1})$, which changes the step
+    by $O(h^{2r + 1})$: the order stays $2s$ for every $r \ge s$. It is symmetric (the
+    reversed step reverses $\delta$, the numerator's sign and the Gauss nodes), and
+    for $s = r = 1$ it is the Gonzalez discrete gradient with $\Pi$ at the midpoint.
+    $H(x_1) - H(x_0)$ comes from the values, or for nearly equal points from gradients
+    along the segment (`nhjax._discrete_gradient.value_difference`), as for GONZALEZ-R.
+
+    **On the reduced form** each stage needs the frame and its derivative at the stage
+    value (`nhjax._reduced.ReducedSystem.at`), with the signs of the step's start kept
+    for every factorisation in the step, so that every stage's frame belongs to one
+    smooth basis; $q$-increments lie in $\mathcal{D}$ at each stage, and the returned
+    $p' = p(\zeta')$ satisfies $A(q')\partial_pH(q', p') = 0$ to roundoff.
+
+    **The step's equations** are solved for the scaled increments $Z_j/S$
+    ($S = 1 + |x_0|$) by the chord iteration with the simplified-Newton matrix
+    $I - h\,(a \otimes F)$ of the Gauss method, $F$ the field's derivative at the
+    predicted midpoint (on the reduced form with the frame held fixed,
+    `ReducedSystem.field_jacobian`). The predictor extrapolates the last step's
+    collocation polynomial, $K_i \approx \sum_j\ell_j(1 + c_ih/h_{\text{prev}})K_j^{\text{prev}}$,
+    $O(h^s)$ from the root; explicit Euler where there is no such step (the first step, a restart, a
+    change of the frame's signs, a step size more than four times the last).
+
+    **Arguments:**
+
+    - `order`: 2, 4, 6 or 8 ($s$ = `order / 2` stages).
+    - `quadrature_nodes`: $r \ge s$ (default $s$); more nodes make the correction
+        smaller, not the energy more exact.
+    - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
+
+    **Dissipation and force.** For $\dot x = (\Pi - R)\nabla H + g(t, x)$ (on the
+    reduced form $R_\zeta$ and $g_\zeta$, as for GONZALEZ-R) the stage equations are
+    $K_i = (\Pi_i - R_i)G_i + g_i$ with $R$, $g$ at the stage value and time
+    $t_0 + c_ih$, and the same identity gives the discrete power balance
+    $$H(x_1) - H(x_0) = h\sum_ib_iG_i^Tg_i - h\sum_ib_iG_i^TR_iG_i$$
+    to roundoff (the step's `exchange`), the collocation form of Celledoni &
+    Høiseth's balance (arXiv:1706.08621); still symmetric, and collocation at the
+    stage times keeps the order for a time-dependent force. Measured
+    against GONZALEZ-R's compositions and Dopri8 in `benchmarks/composition.py`
+    (`benchmarks/results/composition.json`).
+    """
+
+    # Both forms: the registry and the command line take it for canonical systems.
+    term_structure: ClassVar = AbstractSystem
+
+    stages: int = 2
+    quadrature_nodes: int | None = None
+    root_finder: optx.AbstractRootFinder | None = None
+    root_find_max_steps: int = 20
+
+    def __init__(self, order: int = 4, quadrature_nodes: int | None = None, root_finder=None,
+                 root_find_max_steps: int = 20):
+        if isinstance(order, bool) or order not in ORDERS:
+            raise ValueError(f"EnergyPreservingCollocation: order must be one of {ORDERS}, got {order!r}.")
+        stages = order // 2
+        if quadrature_nodes is not None and (
+            isinstance(quadrature_nodes, bool) or not isinstance(quadrature_nodes, int) or quadrature_nodes < stages
+        ):
+            raise ValueError(
+                f"EnergyPreservingCollocation: quadrature_nodes must be an integer of at least {stages} (the "
+                f"stages of order {order}): a coarser quadrature of the gradient along the step lowers the "
+                f"order; got {quadrature_nodes!r}."
+            )
+        self.stages = order // 2
+        self.quadrature_nodes = quadrature_nodes
+        self.root_finder = root_finder
+        self.root_find_max_steps = root_find_max_steps
+
+    def tableau(self) -> CollocationTableau:
+        return collocation_tableau(self.stages, self.stages if self.quadrature_nodes is None else self.quadrature_nodes)
+
+    def order(self, terms) -> int:
+        del terms
+        return 2 * self.stages
+
+    def is_symmetric(self) -> bool:
+        return True
+
+    def keeps_energy(self) -> bool:
+        return True
+
+    def keeps_constraint(self) -> bool:
+        return True
+
+    def summary(self) -> str:
+        return (
+            f"energy-preserving collocation at {self.stages} Gauss nodes (Cohen & Hairer), on the reduced "
+            "system in canonical coordinates"
+        )
+
+    def _form(self, system, y0, args, signs):
+        if isinstance(system, NonholonomicSystem):
+            return ReducedSystem(system, signs, metric=metric_of(system, y0, args))
+        if isinstance(system, SkewGradientSystem):
+            return system
+        raise ValueError(
+            "EnergyPreservingCollocation integrates a NonholonomicSystem (through its reduced form) or a "
+            f"SkewGradientSystem, got {type(system).__name__}."
+        )
+
+    def _signs(self, system, y0, args):
+        if isinstance(system, NonholonomicSystem):
+            return lax.stop_gradient(system.frame_signs(y0[0], args))
+        return jnp.zeros((0,), dtype=jax.tree.leaves(y0)[0].dtype)
+
+    def initial_carry(self, system, y0, args):
+        signs = self._signs(system, y0, args)
+        form = self._form(system, y0, args, signs)
+        start = form.to_reduced(y0, args) if isinstance(form, ReducedSystem) else y0
+        unknown = jnp.full((self.stages, start.shape[0]), jnp.nan, dtype=start.dtype)
+        return _Carry(start, signs, unknown, jnp.full((), jnp.nan, dtype=start.dtype))
+
+    def setup(self, system, t, h, y0, args, carry):
+        signs = self._signs(system, y0, args)
+        form = self._form(system, y0, args, signs)
+        if isinstance(form, ReducedSystem):
+            # As GONZALEZ-R: a step starts from the last step's zeta' itself where the
+            # state is the one it returned and the signs are the same (p -> rho -> p
+            # rounds with a bias).
+            q = y0[0]
+            continues = jnp.all(signs == carry.signs) & jnp.all(carry.end[: q.shape[0]] == q)
+            x = jnp.where(continues, carry.end, form.to_reduced(y0, args))
+            energy, momentum = form.start_of_step(x, args)
+        else:
+            continues = jnp.all(carry.end == y0)
+            x, momentum = y0, None
+            energy = form.hamiltonian(x, args)
+        tableau = self.tableau()
+        ratio = h / carry.step
+        extrapolates = continues & jnp.all(jnp.isfinite(carry.increments)) & (jnp.abs(ratio) <= 4)
+        times = 1 + jnp.asarray(tableau.c) * ratio
+        extrapolation = (times[:, None] ** jnp.arange(self.stages)) @ jnp.asarray(tableau.lagrange).T
+        extrapolated = ratio * extrapolation @ carry.increments
+        euler = rarely(
+            ~extrapolates,
+            lambda operands: jnp.broadcast_to(operands[3] * _field(*operands[:3]), extrapolated.shape),
+            lax.stop_gradient(extrapolated),
+            no_gradient((form, x, args, h)),
+        )
+        scale = increment_scale(x)
+        guess = (lax.stop_gradient(euler) / scale).reshape(-1)
+        return guess, _StepData(form, x, h, scale, args, energy, momentum, t)
+
+    def residual(self, u, data, branch: Branch = "cond"):
+        return self._equations(u, data, branch)[0]
+
+    def exchange(self, u, data):
+        r"""$h\sum_ib_iG_i^Tg_i$ and $h\sum_ib_iG_i^TR_iG_i$ (see the class
+        docstring)."""
+        return self._equations(u, data)[1]
+
+    def _equations(self, u, data, branch: Branch = "cond"):
+        """The residual, and the step's exchange (`None` for a conservative system)."""
+        tableau = self.tableau()
+        form, x, h, scale, args = data.form, data.x, data.h, data.scale, data.args
+        increments = u.reshape(self.stages, -1) * scale
+        stages = x + jnp.asarray(tableau.a) @ increments
+        x1 = x + jnp.asarray(tableau.b) @ increments
+        points = [_point(form, stage, args) for stage in stages]
+        if tableau.shares_nodes:
+            gradients = jnp.stack([point.gradient for point in points])
+        else:
+            nodes = x + jnp.asarray(tableau.quadrature_points) @ increments
+            gradients = jnp.stack([_point(form, node, args).gradient for node in nodes])
+        averaged = jnp.asarray(tableau.quadrature_weights) @ gradients
+        delta = x1 - x
+        squared_length = delta @ delta
+        zero = squared_length == 0
+        if isinstance(form, ReducedSystem):
+            energy1, segment = form.energy_segment(x, data.momentum, x1, args)
+        else:
+            energy1, segment = form.hamiltonian(x1, args), None
+        difference = value_difference(
+            form.hamiltonian, x, x1, args, branch=branch, f_x=data.energy, f_x1=energy1, segment=segment
+        )
+        quadrature = jnp.asarray(tableau.b) @ jnp.sum(averaged * increments, axis=1)
+        coefficient = (difference - quadrature) / jnp.where(zero, 1.0, squared_length)
+        corrected = averaged + jnp.where(zero, 0.0, coefficient) * delta
+        times = data.t + jnp.asarray(tableau.c) * h
+        fields, powers = zip(*[
+            _stage_field(form, time, stage, point, g, args)
+            for time, stage, point, g in zip(times, stages, points, corrected)
+        ])
+        residual = ((increments - h * jnp.stack(fields)) / scale).reshape(-1)
+        if powers[0] is None:
+            return residual, None
+        weights = h * jnp.asarray(tableau.b)
+        supplied = weights @ jnp.stack([power[0] for power in powers])
+        dissipated = weights @ jnp.stack([power[1] for power in powers])
+        return residual, (supplied, dissipated)
+
+    def root_find_residual(self, u, data):
+        return self.residual(u, data, branch="rarely")
+
+    def chord_jacobian(self, u, data):
+        r"""$I - h\,(a \otimes F)$ in the scaled unknowns, $F$ the derivative of the field
+        at the predicted midpoint $x_0 + \tfrac12\sum_jb_jZ_j$ (see the class
+        docstring)."""
+        tableau = self.tableau()
+        form, x, h, scale, args = data.form, data.x, data.h, data.scale, data.args
+        increments = u.reshape(self.stages, -1) * scale
+        middle = x + 0.5 * jnp.asarray(tableau.b) @ increments
+        if isinstance(form, ReducedSystem):
+            jacobian = form.field_jacobian(middle, data.t + 0.5 * h, args)
+        else:
+            jacobian = jax.jacfwd(lambda z: form.field(data.t + 0.5 * h, z, args))(middle)
+        scaled = jacobian * scale[None, :] / scale[:, None]
+        size = u.shape[0]
+        return jnp.eye(size, dtype=u.dtype) - h * jnp.kron(jnp.asarray(tableau.a, dtype=u.dtype), scaled)
+
+    def chord_remainder(self, data):
+        """The chord matrix holds the field's derivative at one point (and, on the
+        reduced form, the frame fixed): the iteration contracts only by $O(h)$ and goes
+        on until the error it leaves is below the rounding (`REMAINDER`)."""
+        del data
+        return REMAINDER
+
+    def resolution(self, data):
+        resolution = resolution_of(data.x, data.scale)
+        return jnp.tile(resolution, self.stages), jnp.tile(data.scale, self.stages)
+
+    def complete(self, u, data):
+        tableau = self.tableau()
+        form, x, args = data.form, data.x, data.args
+        increments = u.reshape(self.stages, -1) * data.scale
+        x1 = x + jnp.asarray(tableau.b) @ increments
+        y1 = form.from_reduced(x1, args) if isinstance(form, ReducedSystem) else x1
+        signs = form.signs if isinstance(form, ReducedSystem) else jnp.zeros((0,), dtype=x.dtype)
+        return y1, _Carry(
+            end=x1,
+            signs=signs,
+            increments=lax.stop_gradient(increments),
+            step=lax.stop_gradient(jnp.asarray(data.h, dtype=x.dtype)),
+        )
+
+
+def _field(form, x, args):
+    """$\\Pi(x)\\nabla H(x)$ (the predictor's Euler step)."""
+    if isinstance(form, ReducedSystem):
+        return form.vector_field(x, args)
+    return form.structure(x, args) @ jax.grad(form.hamiltonian)(x, args)
