@@ -13,7 +13,7 @@ import threading
 import time
 import warnings
 
-from ._methods import integrates_adapted, METHODS
+from ._methods import integrates_adapted, METHODS, takes_either_form
 from ._reproduce import FIGURES
 from .examples import EXAMPLES
 
@@ -121,8 +121,14 @@ def _user_problem(spec: str):
 
 def _form(arguments) -> str:
     """The form of the system the method integrates: "adapted" (the reduced equations)
-    or "canonical"."""
-    return "adapted" if integrates_adapted(METHODS[arguments.method].solver) else "canonical"
+    or "canonical"; for a method that takes either, canonical where the example has it."""
+    solver = METHODS[arguments.method].solver
+    if integrates_adapted(solver):
+        return "adapted"
+    if takes_either_form(solver) and not _is_factory(arguments.system):
+        if "canonical" not in EXAMPLES[arguments.system]().forms():
+            return "adapted"
+    return "canonical"
 
 
 def _problem(arguments):

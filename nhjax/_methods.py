@@ -13,7 +13,7 @@ import diffrax
 
 from ._discrete_gradient import avf, gonzalez
 from ._solver import DiscreteGradient, EnergyPreservingCollocation, GonzalezF, GonzalezR, IDLA, Projection, SIDLA, SPARK
-from ._system import SkewGradientSystem
+from ._system import AbstractSystem, SkewGradientSystem
 
 
 # For a method registered without a colour of its own.
@@ -24,6 +24,14 @@ def integrates_adapted(solver: diffrax.AbstractSolver) -> bool:
     """Whether `solver` integrates an example's reduced equations in adapted coordinates
     (a `SkewGradientSystem`) rather than a `NonholonomicSystem` in canonical ones."""
     return getattr(solver, "term_structure", None) is SkewGradientSystem
+
+
+def takes_either_form(solver: diffrax.AbstractSolver) -> bool:
+    """Whether `solver` integrates both forms, canonical and adapted (its
+    `term_structure` is any `AbstractSystem`); the registry takes it for a canonical
+    method, and the command line gives it the adapted form of an example that has no
+    other."""
+    return getattr(solver, "term_structure", None) is AbstractSystem
 
 
 def keeps_energy(solver: diffrax.AbstractSolver) -> bool:

@@ -265,6 +265,20 @@ def test_a_method_needs_the_form_it_integrates(tmp_path, capsys):
     assert "avf integrates the adapted form, and the gearbox example comes in canonical, lagrangian" in capsys.readouterr().err
 
 
+def test_a_method_of_either_form_takes_the_one_the_example_has(tmp_path, capsys):
+    """The energy-preserving collocation integrates Suslov's reduced equations (it has
+    no canonical form) and the gearbox in canonical coordinates."""
+    for name, saved_as in (("suslov", ("x",)), ("gearbox", ("q", "p"))):
+        out = tmp_path / f"{name}.npz"
+        arguments = ["simulate", name, "--method", "ep-collocation-4", "--dt", "0.2", "--t1", "2", "--no-progress"]
+        assert main([*arguments, "--out", str(out)]) == 0, capsys.readouterr().err
+        printed = capsys.readouterr().out
+        relative_error = float(printed.split("max relative energy error")[1].split()[0])
+        assert relative_error < 1e-13, printed
+        with np.load(out) as saved:
+            assert all(key in saved for key in saved_as) and saved["energy"].shape == (11,)
+
+
 def test_unknown_system_or_method_lists_the_valid_ones():
     out = _run("simulate", "bicycle", "--method", "sidla", "--dt", "0.1", "--t1", "1")
     assert out.returncode != 0 and "invalid choice: 'bicycle'" in out.stderr

@@ -1,0 +1,116 @@
+"""EnergyPreservingCollocation beyond the shared properties (tests/test_solver/
+test_methods.py runs its invariants and symmetry on the canonical examples): its fitted
+orders 4 and 6 against independent references on five systems, in both forms it takes;
+its energy to roundoff on a skew-gradient system at large steps; its tableau against
+the Gauss method's published coefficients; and its refusals."""
+
+import math
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax as nh
+from nhjax._solver._collocation_tableau import collocation_tableau
+
+from ..helpers import fitted_order
+
+
+T1 = 4.0
+# Step sizes per order in the asymptotic regime, with errors above the references'
+# (the gearbox's order-6 error constant is large: smaller steps).
+STEP_SIZES = {4: (0.4, 0.2, 0.1), 6: (0.5, 0.25, 0.125)}
+CASES = {
+    "rolling disk": ("disk", "canonical", dict(theta=0.2), STEP_SIZES),
+    "Suslov (skew-gradient)": ("suslov", "adapted", {}, STEP_SIZES),
+    "gearbox": ("gearbox", "canonical", {}, {4: STEP_SIZES[4], 6: (0.25, 0.125, 0.0625)}),
+    "quartic": ("quartic", "canonical", dict(angle=0.9), STEP_SIZES),
+    "sleigh": ("sleigh", "canonical", dict(x1=0.0, rho1=2.0), STEP_SIZES),
+}
+
+
+def _distance(y, reference) -> float:
+    return max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(y), jax.tree.leaves(reference)))
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_orders_four_and_six_against_the_reference(case):
+    """The fitted order over three step sizes within [p - 0.3, p + 0.6] against Dopri8
+    at rtol = atol = 1e-13 (the index-1 ODE for canonical systems, the skew-gradient
+    field itself for Suslov), with the energy and, on canonical systems, the
+    constraint to roundoff at every step."""
+    name, form, choices, step_sizes = CASES[case]
+    example = nh.examples.EXAMPLES[name]()
+    system, y0, args = example.system(form), example.start(form, **choices), example.args
+    reference = nh.integrate_adaptive(system, y0, T1, args, rtol=1e-13, atol=1e-13)
+    final = jax.tree.map(lambda y: y[-1], reference.ys)
+    for order, sizes in step_sizes.items():
+        method = nh.EnergyPreservingCollocation(order)
+        bound = round(T1 / min(sizes))  # one compiled program for the three sizes
+        errors = []
+        for h in sizes:
+            solution = nh.integrate(system, method, y0, h, round(T1 / h), args, save_every=1, max_steps=bound)
+            errors.append(_distance(jax.tree.map(lambda y: y[-1], solution.ys), final))
+            energy = solution.energy
+            assert float(jnp.max(jnp.abs(energy / energy[0] - 1))) <= 1e-13
+            if solution.constraint is not None:
+                assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-13
+        assert min(errors) > 5e-13, errors  # above the reference's own error
+        assert order - 0.3 <= fitted_order(sizes, errors) <= order + 0.6, (order, errors)
+
+
+def test_energy_and_symmetry_on_a_skew_gradient_system_at_large_steps():
+    """The chaotic quartic's reduced equations (a skew-gradient system whose H is not
+    quadratic): the energy to roundoff at h = 0.5 over 200 steps, where the Gauss
+    quadrature of the gradient alone would be wrong far above roundoff, and a step with
+    h then -h returns to the start."""
+    example = nh.examples.EXAMPLES["quartic"]()
+    system, x0 = example.adapted, example.start("adapted", angle=0.9)
+    for order in (4, 6):
+        method = nh.EnergyPreservingCollocation(order)
+        solution = nh.integrate(system, method, x0, 0.5, 200)
+        assert float(jnp.max(jnp.abs(solution.energy / solution.energy[0] - 1))) <= 1e-13
+        state = method.init(system, 0.0, 0.5, x0, None)
+        x1, _, _, state, _ = method.step(system, 0.0, 0.5, x0, None, state, False)
+        back, *_ = method.step(system, 0.5, 0.0, x1, None, state, False)
+        np.testing.assert_allclose(back, x0, rtol=0, atol=1e-14)
+
+
+def test_the_tableau_is_the_gauss_method():
+    """Two stages: the Gauss method's nodes 1/2 -+ sqrt(3)/6 and Butcher matrix
+    (Hairer, Nørsett & Wanner, Table II.7.3); three stages: the nodes
+    1/2 -+ sqrt(15)/10 and 1/2 with weights 5/18, 4/9, 5/18. With the quadrature at the
+    collocation nodes its weights select each node's own gradient."""
+    two = collocation_tableau(2, 2)
+    root3 = math.sqrt(3.0)
+    np.testing.assert_allclose(two.c, [0.5 - root3 / 6, 0.5 + root3 / 6], atol=1e-15)
+    np.testing.assert_allclose(two.a, [[0.25, 0.25 - root3 / 6], [0.25 + root3 / 6, 0.25]], atol=1e-15)
+    np.testing.assert_allclose(two.b, [0.5, 0.5], atol=1e-15)
+    np.testing.assert_allclose(two.quadrature_weights, np.eye(2), atol=1e-15)
+    three = collocation_tableau(3, 5)
+    np.testing.assert_allclose(three.c, [0.5 - math.sqrt(15) / 10, 0.5, 0.5 + math.sqrt(15) / 10], atol=1e-15)
+    np.testing.assert_allclose(three.b, [5 / 18, 4 / 9, 5 / 18], atol=1e-15)
+    # The quadrature reproduces the projection of a polynomial of degree 3 on l_i/b_i.
+    g = np.polynomial.Polynomial([0.3, -1.0, 2.0, 0.7])
+    sigma = (np.polynomial.legendre.leggauss(5)[0] + 1) / 2
+    exact = []
+    for i in range(3):
+        others = np.delete(three.c, i)
+        lagrange = np.polynomial.Polynomial.fromroots(others) / np.prod(three.c[i] - others)
+        integral = (lagrange * g).integ()
+        exact.append((integral(1.0) - integral(0.0)) / three.b[i])
+    np.testing.assert_allclose(three.quadrature_weights @ g(sigma), exact, atol=1e-14)
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match="order must be one of"):
+        nh.EnergyPreservingCollocation(5)
+    with pytest.raises(ValueError, match="order must be one of"):
+        nh.EnergyPreservingCollocation(True)
+    with pytest.raises(ValueError, match="quadrature_nodes must be an integer of at least 3"):
+        nh.EnergyPreservingCollocation(6, quadrature_nodes=2)
+    with pytest.raises(ValueError, match="NonholonomicSystem .* or a SkewGradientSystem, got ODETerm"):
+        term = diffrax.ODETerm(lambda t, y, args: -y)
+        nh.EnergyPreservingCollocation(4).initial_carry(term, jnp.ones(3), None)
