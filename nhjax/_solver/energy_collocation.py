@@ -239,8 +239,10 @@ class EnergyPreservingCollocation(AbstractMethod):
         tableau = self.tableau()
         ratio = h / carry.step
         extrapolates = continues & jnp.all(jnp.isfinite(carry.increments)) & (jnp.abs(ratio) <= 4)
-        times = 1 + jnp.asarray(tableau.c) * ratio
-        extrapolation = (times[:, None] ** jnp.arange(self.stages)) @ jnp.asarray(tableau.lagrange).T
+        # l_j(1 + c_i h / h_prev), from the coefficients of l_j.
+        times = 1 + jnp.asarray(tableau.c, dtype=x.dtype) * ratio
+        powers = times[:, None] ** jnp.arange(self.stages, dtype=x.dtype)
+        extrapolation = powers @ jnp.asarray(tableau.lagrange, dtype=x.dtype).T
         extrapolated = ratio * extrapolation @ carry.increments
         euler = rarely(
             ~extrapolates,
@@ -265,15 +267,15 @@ class EnergyPreservingCollocation(AbstractMethod):
         tableau = self.tableau()
         form, x, h, scale, args = data.form, data.x, data.h, data.scale, data.args
         increments = u.reshape(self.stages, -1) * scale
-        stages = x + jnp.asarray(tableau.a) @ increments
-        x1 = x + jnp.asarray(tableau.b) @ increments
+        stages = x + jnp.asarray(tableau.a, dtype=x.dtype) @ increments
+        x1 = x + jnp.asarray(tableau.b, dtype=x.dtype) @ increments
         points = [_point(form, stage, args) for stage in stages]
         if tableau.shares_nodes:
             gradients = jnp.stack([point.gradient for point in points])
         else:
-            nodes = x + jnp.asarray(tableau.quadrature_points) @ increments
+            nodes = x + jnp.asarray(tableau.quadrature_points, dtype=x.dtype) @ increments
             gradients = jnp.stack([_point(form, node, args).gradient for node in nodes])
-        averaged = jnp.asarray(tableau.quadrature_weights) @ gradients
+        averaged = jnp.asarray(tableau.quadrature_weights, dtype=x.dtype) @ gradients
         delta = x1 - x
         squared_length = delta @ delta
         zero = squared_length == 0
@@ -284,10 +286,10 @@ class EnergyPreservingCollocation(AbstractMethod):
         difference = value_difference(
             form.hamiltonian, x, x1, args, branch=branch, f_x=data.energy, f_x1=energy1, segment=segment
         )
-        quadrature = jnp.asarray(tableau.b) @ jnp.sum(averaged * increments, axis=1)
+        quadrature = jnp.asarray(tableau.b, dtype=x.dtype) @ jnp.sum(averaged * increments, axis=1)
         coefficient = (difference - quadrature) / jnp.where(zero, 1.0, squared_length)
         corrected = averaged + jnp.where(zero, 0.0, coefficient) * delta
-        times = data.t + jnp.asarray(tableau.c) * h
+        times = data.t + jnp.asarray(tableau.c, dtype=x.dtype) * h
         fields, powers = zip(*[
             _stage_field(form, time, stage, point, g, args)
             for time, stage, point, g in zip(times, stages, points, corrected)
@@ -295,7 +297,7 @@ class EnergyPreservingCollocation(AbstractMethod):
         residual = ((increments - h * jnp.stack(fields)) / scale).reshape(-1)
         if powers[0] is None:
             return residual, None
-        weights = h * jnp.asarray(tableau.b)
+        weights = h * jnp.asarray(tableau.b, dtype=x.dtype)
         supplied = weights @ jnp.stack([power[0] for power in powers])
         dissipated = weights @ jnp.stack([power[1] for power in powers])
         return residual, (supplied, dissipated)
@@ -310,14 +312,14 @@ class EnergyPreservingCollocation(AbstractMethod):
         tableau = self.tableau()
         form, x, h, scale, args = data.form, data.x, data.h, data.scale, data.args
         increments = u.reshape(self.stages, -1) * scale
-        middle = x + 0.5 * jnp.asarray(tableau.b) @ increments
+        middle = x + 0.5 * jnp.asarray(tableau.b, dtype=x.dtype) @ increments
         if isinstance(form, ReducedSystem):
             jacobian = form.field_jacobian(middle, data.t + 0.5 * h, args)
         else:
             jacobian = jax.jacfwd(lambda z: form.field(data.t + 0.5 * h, z, args))(middle)
         scaled = jacobian * scale[None, :] / scale[:, None]
         size = u.shape[0]
-        return jnp.eye(size, dtype=u.dtype) - h * jnp.kron(jnp.asarray(tableau.a, dtype=u.dtype), scaled)
+        return jnp.eye(size, dtype=u.dtype) - h * jnp.kron(jnp.asarray(tableau.a, dtype=x.dtype), scaled)
 
     def chord_remainder(self, data):
         """The chord matrix holds the field's derivative at one point (and, on the
@@ -334,7 +336,7 @@ class EnergyPreservingCollocation(AbstractMethod):
         tableau = self.tableau()
         form, x, args = data.form, data.x, data.args
         increments = u.reshape(self.stages, -1) * data.scale
-        x1 = x + jnp.asarray(tableau.b) @ increments
+        x1 = x + jnp.asarray(tableau.b, dtype=x.dtype) @ increments
         y1 = form.from_reduced(x1, args) if isinstance(form, ReducedSystem) else x1
         signs = form.signs if isinstance(form, ReducedSystem) else jnp.zeros((0,), dtype=x.dtype)
         return y1, _Carry(

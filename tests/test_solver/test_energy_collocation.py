@@ -15,7 +15,7 @@ import pytest
 import nhjax as nh
 from nhjax._solver._collocation_tableau import collocation_tableau
 
-from ..helpers import fitted_order
+from ..helpers import check_float32, check_per_trajectory_result_codes, fitted_order
 
 
 T1 = 4.0
@@ -102,6 +102,34 @@ def test_the_tableau_is_the_gauss_method():
         integral = (lagrange * g).integ()
         exact.append((integral(1.0) - integral(0.0)) / three.b[i])
     np.testing.assert_allclose(three.quadrature_weights @ g(sigma), exact, atol=1e-14)
+
+
+def test_float32_and_per_trajectory_codes():
+    gearbox = nh.examples.gearbox()
+    check_float32(nh.EnergyPreservingCollocation(4), gearbox, gearbox.random_initial_state(jax.random.key(0)))
+    check_per_trajectory_result_codes(nh.EnergyPreservingCollocation(4))
+
+
+def test_ensembles_and_chunked_runs_are_the_single_run(tmp_path):
+    """An ensemble of three sleigh states (a q-dependent metric) gives each state's
+    single run to the root finder's tolerance, and a run in chunks of 20 steps the
+    whole run."""
+    sleigh = nh.examples.EXAMPLES["sleigh"]()
+    method = nh.EnergyPreservingCollocation(6)
+    starts = [sleigh.start("canonical", x1=0.0, rho1=rho) for rho in (0.3, 1.0, 2.0)]
+    batch = jax.tree.map(lambda *y: jnp.stack(y), *starts)
+    ensemble = nh.integrate_ensemble(sleigh.canonical, method, batch, 0.2, 40, args=sleigh.args)
+    for i, start in enumerate(starts):
+        single = nh.integrate(sleigh.canonical, method, start, 0.2, 40, args=sleigh.args)
+        for leaf, single_leaf in zip(ensemble.ys, single.ys):
+            np.testing.assert_allclose(leaf[i], single_leaf, rtol=0, atol=1e-12)
+    chunked = nh.run_chunked(
+        sleigh.canonical, method, starts[2], 0.2, 40, args=sleigh.args, directory=tmp_path, chunk_steps=20,
+        progress=False,
+    )
+    whole = nh.integrate(sleigh.canonical, method, starts[2], 0.2, 40, args=sleigh.args)
+    np.testing.assert_allclose(chunked.ys[1][-1], whole.ys[1][-1], rtol=0, atol=1e-12)
+    assert int(chunked.stats["root_find_steps"]) > 0
 
 
 def test_bad_arguments_are_named():
