@@ -28,7 +28,12 @@ class CollocationTableau(NamedTuple):
       $\sum_l$ of it times $g(\sigma_l)$ is the quadrature of
       $\int_0^1\ell_i(\tau)g(\tau)\,d\tau/b_i$;
     - `lagrange`: the coefficients of $\ell_j$, shape $(s, s)$, lowest degree first,
-      to extrapolate $\dot u$ beyond the step (`extrapolation`).
+      to extrapolate $\dot u$ beyond the step;
+    - `eigenvalues`, `eigenvectors`: $a = V\Lambda V^{-1}$ (complex; the Gauss
+      method's $a$ has no real eigenvalue for even $s$ and one for odd $s$), and
+      `eigenvectors_inverse`, $V^{-1}$: the simplified-Newton matrix
+      $I - h\,a \otimes F$ is $(V \otimes I)(I - h\Lambda \otimes F)(V^{-1} \otimes I)$,
+      inverted by $N \times N$ blocks (Hairer & Wanner, *Solving ODEs II*, §IV.8).
     """
 
     c: np.ndarray
@@ -37,6 +42,9 @@ class CollocationTableau(NamedTuple):
     quadrature_points: np.ndarray
     quadrature_weights: np.ndarray
     lagrange: np.ndarray
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+    eigenvectors_inverse: np.ndarray
 
     @property
     def stages(self) -> int:
@@ -71,4 +79,7 @@ def collocation_tableau(stages: int, quadrature_nodes: int) -> CollocationTablea
     points = np.array([[polynomial.polyval(s, integrals[j]) for j in range(stages)] for s in sigma])
     weights = np.array([[w[l] * polynomial.polyval(sigma[l], lagrange[i]) / b[i] for l in range(quadrature_nodes)]
                         for i in range(stages)])
-    return CollocationTableau(c, b, a, points, weights, lagrange)
+    eigenvalues, eigenvectors = np.linalg.eig(a)
+    return CollocationTableau(
+        c, b, a, points, weights, lagrange, eigenvalues, eigenvectors, np.linalg.inv(eigenvectors)
+    )

@@ -262,6 +262,15 @@ class AbstractMethod(diffrax.AbstractSolver):
     def chord_jacobian(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, "u u"]:
         return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
+    def chord_matrix_inverse(
+        self, jacobian: Float[Array, "u u"], unknowns: Float[Array, " u"], data: Any
+    ) -> Float[Array, "u u"]:
+        """The inverse of the chord matrix `jacobian` (`chord_jacobian` at `unknowns`), by
+        default `nhjax._solver.chord.chord_inverse`; a method whose matrix has structure
+        may invert it by that structure."""
+        del unknowns, data
+        return chord_inverse(jacobian)
+
     def complete(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], PyTree]:
         raise NotImplementedError
 
@@ -402,7 +411,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         root_finder = self._root_finder(guess.dtype)
         if isinstance(root_finder, PresetChord):
             jacobian = self.chord_jacobian(guess, fixed_data)
-            inverse = chord_inverse(jacobian)
+            inverse = self.chord_matrix_inverse(jacobian, guess, fixed_data)
             resolution = self.resolution(fixed_data)
             floor = None if resolution is None else rounding_floor(jacobian, *resolution)
             solution = root_finder.solve(

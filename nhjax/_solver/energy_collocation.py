@@ -6,17 +6,19 @@ from typing import Any, ClassVar, NamedTuple
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
 from .._discrete_gradient import Branch, value_difference
+from .._linalg import UNROLL_LIMIT
 from .._nonholonomic import NonholonomicSystem
 from .._rare_branch import rarely
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
 from ._collocation_tableau import collocation_tableau, CollocationTableau
 from .base import AbstractMethod, increment_scale, no_gradient, resolution_of
-from .chord import REMAINDER
+from .chord import chord_inverse, REMAINDER
 
 
 ORDERS = (2, 4, 6, 8)
@@ -305,10 +307,9 @@ class EnergyPreservingCollocation(AbstractMethod):
     def root_find_residual(self, u, data):
         return self.residual(u, data, branch="rarely")
 
-    def chord_jacobian(self, u, data):
-        r"""$I - h\,(a \otimes F)$ in the scaled unknowns, $F$ the derivative of the field
-        at the predicted midpoint $x_0 + \tfrac12\sum_jb_jZ_j$ (see the class
-        docstring)."""
+    def _scaled_field_jacobian(self, u, data):
+        """$S^{-1}FS$, the field's derivative at the predicted midpoint in the scaled
+        unknowns."""
         tableau = self.tableau()
         form, x, h, scale, args = data.form, data.x, data.h, data.scale, data.args
         increments = u.reshape(self.stages, -1) * scale
@@ -317,9 +318,44 @@ class EnergyPreservingCollocation(AbstractMethod):
             jacobian = form.field_jacobian(middle, data.t + 0.5 * h, args)
         else:
             jacobian = jax.jacfwd(lambda z: form.field(data.t + 0.5 * h, z, args))(middle)
-        scaled = jacobian * scale[None, :] / scale[:, None]
-        size = u.shape[0]
-        return jnp.eye(size, dtype=u.dtype) - h * jnp.kron(jnp.asarray(tableau.a, dtype=x.dtype), scaled)
+        return jacobian * scale[None, :] / scale[:, None]
+
+    def chord_jacobian(self, u, data):
+        r"""$I - h\,(a \otimes F)$ in the scaled unknowns, $F$ the derivative of the field
+        at the predicted midpoint $x_0 + \tfrac12\sum_jb_jZ_j$ (see the class
+        docstring)."""
+        a = jnp.asarray(self.tableau().a, dtype=u.dtype)
+        return jnp.eye(u.shape[0], dtype=u.dtype) - data.h * jnp.kron(a, self._scaled_field_jacobian(u, data))
+
+    def chord_matrix_inverse(self, jacobian, u, data):
+        r"""The inverse of $I - h\,(a \otimes F)$ by the eigenvalues $\lambda_k$ of $a$:
+        $\sum_k (v_k w_k^T) \otimes (I - h\lambda_kF)^{-1}$ ($v_k$, $w_k^T$ the columns
+        of $V$ and rows of $V^{-1}$), one complex $N \times N$ inverse per real
+        eigenvalue or conjugate pair (the conjugate's block is the conjugate), against
+        $(sN)^3$ work by elimination. Where $sN$ is within `UNROLL_LIMIT`, the unrolled
+        real elimination (`chord_inverse`) is the cheaper of the two on XLA:CPU, and is
+        used. Cut from differentiation, as the chord matrix is."""
+        if u.shape[0] <= UNROLL_LIMIT:
+            return chord_inverse(jacobian)
+        tableau = self.tableau()
+        scaled = lax.stop_gradient(self._scaled_field_jacobian(u, data))
+        complex_dtype = jnp.result_type(scaled.dtype, jnp.complex64)
+        h = lax.stop_gradient(data.h)
+        identity = jnp.eye(scaled.shape[0], dtype=complex_dtype)
+        blocks = {}
+        for k, eigenvalue in enumerate(tableau.eigenvalues):
+            if eigenvalue.imag < 0 and any(np.isclose(eigenvalue.conjugate(), other) for other in tableau.eigenvalues):
+                continue
+            blocks[k] = chord_inverse(identity - h * complex(eigenvalue) * scaled.astype(complex_dtype))
+        for k, eigenvalue in enumerate(tableau.eigenvalues):
+            if k not in blocks:
+                partner = next(j for j in blocks if np.isclose(tableau.eigenvalues[j], eigenvalue.conjugate()))
+                blocks[k] = jnp.conj(blocks[partner])
+        stacked = jnp.stack([blocks[k] for k in range(self.stages)])
+        vectors = jnp.asarray(tableau.eigenvectors, dtype=complex_dtype)
+        inverse_vectors = jnp.asarray(tableau.eigenvectors_inverse, dtype=complex_dtype)
+        inverse = jnp.einsum("ik,kj,kab->iajb", vectors, inverse_vectors, stacked).real
+        return inverse.reshape(u.shape[0], u.shape[0]).astype(u.dtype)
 
     def chord_remainder(self, data):
         """The chord matrix holds the field's derivative at one point (and, on the
