@@ -7,8 +7,10 @@ state of key 0), to t = 10. Runs:
 - energy-exact: GONZALEZ-R and its compositions of order 4, 6 and 8 (`nhjax.Composition`)
   in canonical coordinates; on the quartic also DiscreteGradient(gonzalez) and its
   compositions on the reduced form (errors measured on (q, p) after mapping back);
-- energy-exact too: Dopri8 with adaptive steps, each step projected onto the energy level
-  and the constraint (`nhjax.Projection`), over a sweep of tolerances;
+- energy-exact and symmetric in one solve a step: `nhjax.EnergyPreservingCollocation` of
+  order 4, 6 and 8 in canonical coordinates (through the reduced form);
+- energy-exact too, not symmetric: Dopri8 with adaptive steps, each step projected onto
+  the energy level and the constraint (`nhjax.Projection`), over a sweep of tolerances;
 - Tsit5 at fixed steps, and Dopri8 with adaptive steps (`nhjax.integrate_adaptive`'s
   solver) over a sweep of tolerances.
 
@@ -18,8 +20,10 @@ warm-up. Error: max-norm distance at t = 10 to a reference, Dopri8 at rtol = ato
 (its distance to the order-8 composition at the smallest step is reported).
 
 For each target error (1e-3, 1e-6, 1e-8, 1e-9, 1e-10): the cheapest run overall, the
-cheapest energy-exact run and the cheapest Dopri8 run that reach it, and the ratio of
-the energy-exact time to Dopri8's; for each energy-exact method, the largest relative
+cheapest energy-exact run, the cheapest symmetric energy-exact run and the cheapest
+Dopri8 run that reach it, the ratios of the energy-exact and symmetric times to
+Dopri8's, and for each order the energy-preserving collocation's time against the
+GONZALEZ-R composition's; for each energy-exact method, the largest relative
 energy error and constraint residual at t = 10 over its runs. Also each scheme's error
 constant C in
 err = C h^p, measured on the quartic's reduced form, for every scheme of
@@ -57,6 +61,7 @@ STEP_COUNTS = {
 }
 TSIT5_STEPS = (50, 100, 200, 400, 800, 1600, 3200)
 PROJECTED = "Dopri8 + projection (adaptive)"
+COLLOCATION = "EP-collocation"
 
 
 def _problems():
@@ -160,6 +165,14 @@ def work_precision(repeats: int, quick: bool = False) -> dict:
                 print(f"{problem_name:10s} {name:34s} " + "  ".join(
                     f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
                     for row in runs[name] if not row["failed"]), flush=True)
+        for order in (4, 6, 8):
+            name = f"{COLLOCATION}, order {order}"
+            runs[name] = _sweep(system, nh.EnergyPreservingCollocation(order), y0, thin(STEP_COUNTS[order]),
+                                reference, _identity, repeats, invariants)
+            exact.append(name)
+            print(f"{problem_name:10s} {name:34s} " + "  ".join(
+                f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
+                for row in runs[name] if not row["failed"]), flush=True)
         runs["Tsit5 (fixed steps)"] = _sweep(system, diffrax.Tsit5(), y0, thin(TSIT5_STEPS), reference, _identity, repeats,
                                               invariants)
         runs["Dopri8 (adaptive)"] = _dopri8(system, y0, reference, repeats, invariants)
@@ -191,7 +204,9 @@ def work_precision(repeats: int, quick: bool = False) -> dict:
 
 def _summary(problem_name, runs, exact) -> dict:
     """At each target: the cheapest run overall, the cheapest energy-exact run, the
-    cheapest Dopri8 run, and the energy-exact run's time over Dopri8's."""
+    cheapest symmetric energy-exact run (all but the projection), the cheapest Dopri8
+    run, the energy-exact and symmetric runs' times over Dopri8's, and for orders 4, 6
+    and 8 the energy-preserving collocation's time over the GONZALEZ-R composition's."""
 
     def best(names, target):
         found = [(name, _cheapest(runs[name], target)) for name in names]
@@ -207,15 +222,31 @@ def _summary(problem_name, runs, exact) -> dict:
         dopri8 = best(["Dopri8 (adaptive)"], target)
         ratio = (energy_exact[1]["wall_time_s"] / dopri8[1]["wall_time_s"]
                  if energy_exact[1] is not None and dopri8[1] is not None else None)
+        symmetric = best([name for name in exact if name != PROJECTED], target)
+        symmetric_ratio = (symmetric[1]["wall_time_s"] / dopri8[1]["wall_time_s"]
+                           if symmetric[1] is not None and dopri8[1] is not None else None)
+        collocation_over_composition = {}
+        for order in (4, 6, 8):
+            collocation = _cheapest(runs[f"{COLLOCATION}, order {order}"], target)
+            composition = _cheapest(runs[f"GONZALEZ-R, order {order}"], target)
+            if collocation is not None and composition is not None:
+                collocation_over_composition[order] = collocation["wall_time_s"] / composition["wall_time_s"]
         summary[f"{target:.0e}"] = dict(
             cheapest=dict(method=overall[0], run=overall[1]),
             cheapest_energy_exact=dict(method=energy_exact[0], run=energy_exact[1]),
+            cheapest_symmetric_energy_exact=dict(method=symmetric[0], run=symmetric[1]),
             cheapest_dopri8=dopri8[1],
             energy_exact_over_dopri8=ratio,
+            symmetric_energy_exact_over_dopri8=symmetric_ratio,
+            collocation_over_gonzalez_r_composition=collocation_over_composition,
         )
         print(f"{problem_name:10s} error {target:.0e}: cheapest {describe(overall)}; energy-exact "
-              f"{describe(energy_exact)}; Dopri8 {describe(dopri8)}; ratio "
-              + (f"{ratio:.2f}" if ratio is not None else "n/a"), flush=True)
+              f"{describe(energy_exact)}; symmetric energy-exact {describe(symmetric)}; Dopri8 "
+              f"{describe(dopri8)}; ratios " + (f"{ratio:.2f}" if ratio is not None else "n/a") + ", "
+              + (f"{symmetric_ratio:.2f}" if symmetric_ratio is not None else "n/a")
+              + "; collocation / composition by order "
+              + ", ".join(f"{order}: {value:.2f}" for order, value in collocation_over_composition.items()),
+              flush=True)
     return summary
 
 
@@ -242,15 +273,18 @@ def markdown(results) -> list[str]:
     lines = []
     for problem_name, problem in results["problems"].items():
         lines += [f"## {problem_name}: work against precision to t = {results['t1']:g}", "",
-                  "| error | cheapest run | ms | cheapest energy-exact run | ms | cheapest Dopri8 ms | energy-exact / Dopri8 |",
-                  "|---|---|---:|---|---:|---:|---:|"]
+                  "| error | cheapest run | ms | cheapest energy-exact run | ms | cheapest symmetric energy-exact run "
+                  "| ms | cheapest Dopri8 ms | energy-exact / Dopri8 | symmetric / Dopri8 |",
+                  "|---|---|---:|---|---:|---|---:|---:|---:|---:|"]
         for target, row in problem["summary"].items():
             overall, exact, dopri8 = row["cheapest"], row["cheapest_energy_exact"], row["cheapest_dopri8"]
+            symmetric = row["cheapest_symmetric_energy_exact"]
             milliseconds = lambda run: "" if run is None else f"{run['wall_time_s'] * 1e3:.2f}"  # noqa: E731
-            ratio = row["energy_exact_over_dopri8"]
+            ratios = [row["energy_exact_over_dopri8"], row["symmetric_energy_exact_over_dopri8"]]
             lines.append(f"| {target} | {overall['method'] or 'none'} | {milliseconds(overall['run'])} | "
-                         f"{exact['method'] or 'none'} | {milliseconds(exact['run'])} | {milliseconds(dopri8)} | "
-                         + ("" if ratio is None else f"{ratio:.1f}") + " |")
+                         f"{exact['method'] or 'none'} | {milliseconds(exact['run'])} | "
+                         f"{symmetric['method'] or 'none'} | {milliseconds(symmetric['run'])} | {milliseconds(dopri8)} | "
+                         + " | ".join("" if value is None else f"{value:.1f}" for value in ratios) + " |")
         lines.append("")
     return lines
 
