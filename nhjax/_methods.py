@@ -107,8 +107,8 @@ METHODS = {
     "spark": Method("SPARK", SPARK, "C4"),
     "avf": Method("AVF", functools.partial(DiscreteGradient, discrete_gradient=avf), "C5"),
     "gonzalez": Method("GONZALEZ", functools.partial(DiscreteGradient, discrete_gradient=gonzalez), "C6"),
-    "ep-collocation-4": Method("EP-COLLOCATION 4", functools.partial(EnergyPreservingCollocation, order=4), "C8"),
-    "ep-collocation-6": Method("EP-COLLOCATION 6", functools.partial(EnergyPreservingCollocation, order=6), "C9"),
+    "ep-collocation-4": Method("EP-COLLOCATION 4", functools.partial(EnergyPreservingCollocation, order=4), "firebrick"),
+    "ep-collocation-6": Method("EP-COLLOCATION 6", functools.partial(EnergyPreservingCollocation, order=6), "darkgoldenrod"),
     "dopri8-projection": Method("Dopri8 + projection", lambda: Projection(diffrax.Dopri8()), "olive"),
     "tsit5": Method("Tsit5", diffrax.Tsit5, "C7"),
 }

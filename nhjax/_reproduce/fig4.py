@@ -4,7 +4,8 @@ H = 3.06), from Figure 1's sample state to t = 10.
 Every method at a few step sizes: the canonical methods (GONZALEZ-R, GONZALEZ-F, SI-DLA,
 I-DLA, SPARK, and Tsit5 at fixed steps on the index-1 ODE), DiscreteGradient with AVF and
 Gonzalez on the adapted form, the compositions of order 4, 6 and 8 of GONZALEZ-R and of
-Gonzalez on the adapted form (`nhjax.Composition`), and Dopri8 with adaptive steps over a
+Gonzalez on the adapted form (`nhjax.Composition`), the energy-preserving collocations of
+order 4 and 6 (`nhjax.EnergyPreservingCollocation`, canonical form), and Dopri8 with adaptive steps over a
 range of tolerances, plain and with each step projected onto the energy level and the
 constraint (`nhjax.Projection`, energy-exact). Wall time is the median of a few runs after compilation; precision
 is the final relative energy error and the error at t = 10 against
@@ -59,6 +60,8 @@ class Sizes:
     """- `methods`, `step_sizes`: the fixed-step methods and their step sizes.
     - `compositions`, `composition_step_sizes`: the compositions of order 4, 6 and 8
       (see `_common.COMPOSITIONS`) and their step sizes.
+    - `collocations`: the energy-preserving collocations, at the compositions' step
+      sizes.
     - `tolerances`: Dopri8's tolerances rtol = atol.
     - `repeats`: how many timed runs the median is taken over.
     - `targets`: the solution errors at which the report names the cheapest runs."""
@@ -67,6 +70,7 @@ class Sizes:
     step_sizes: tuple[float, ...]
     compositions: tuple[str, ...]
     composition_step_sizes: tuple[float, ...]
+    collocations: tuple[str, ...]
     tolerances: tuple[float, ...]
     repeats: int
     targets: tuple[float, ...]
@@ -81,6 +85,7 @@ FULL = Sizes(
         "GONZALEZ order 4", "GONZALEZ order 6", "GONZALEZ order 8",
     ),
     composition_step_sizes=(0.5, 0.25, 0.2, 0.125, 0.1, 0.0625, 0.05, 0.025),
+    collocations=("EP-COLLOCATION 4", "EP-COLLOCATION 6"),
     tolerances=(1e-4, 1e-6, 1e-8, 1e-10, 1e-12),
     repeats=5,
     targets=(1e-3, 1e-6, 1e-9),
@@ -113,7 +118,7 @@ def measure(context: Context, quartic: Quartic, sample) -> dict:
     reference = quartic.reference(context, FINAL_TIME)
     energy0 = float(quartic.energy(quartic.example.from_adapted(sample)))
     runs = [(name, h) for name in sizes.methods for h in sizes.step_sizes]
-    runs += [(name, h) for name in sizes.compositions for h in sizes.composition_step_sizes]
+    runs += [(name, h) for name in sizes.compositions + sizes.collocations for h in sizes.composition_step_sizes]
     runs += [(name, tolerance) for name in _SOLVERS for tolerance in sizes.tolerances]
     results = {}
     for name, setting in tqdm(runs, desc="Figure 4: timed runs to t = 10", disable=not context.progress):
@@ -140,7 +145,7 @@ def measure(context: Context, quartic: Quartic, sample) -> dict:
         for key, value in point.items():
             entry[key].append(value)
     for name, entry in results.items():
-        if name in COMPOSITIONS:
+        if name in COMPOSITIONS or name in sizes.collocations:
             entry["fitted_order"] = _asymptotic_order(entry)
         elif name not in _SOLVERS:
             entry["fitted_order"] = (
@@ -236,6 +241,23 @@ def run(context: Context) -> dict:
             + f" (errors above {ERROR_FLOOR:g})",
             "each within [p - 0.3, p + 0.6]",
         ))
+    collocations = list(sizes.collocations)
+    if collocations:
+        collocation_bound = roundoff(round(FINAL_TIME / min(sizes.composition_step_sizes)))
+        worst = max((error for name in collocations for error in results[name]["energy_error"]), default=0.0)
+        checks.append(check(worst <= collocation_bound,
+                            f"energy error of the energy-preserving collocations <= {worst:.0e} at every step size",
+                            f"<= 100 eps sqrt(N) = {collocation_bound:.0e} (roundoff)"))
+        expected = {name: METHODS[name].solver.order(None) for name in collocations}
+        orders = {name: results[name]["fitted_order"] for name in collocations}
+        checks.append(check(
+            all(order is not None and expected[name] - 0.3 <= order <= expected[name] + 0.6
+                for name, order in orders.items()),
+            "orders " + ", ".join(f"{name} {order:.2f}" if order is not None else f"{name} not fitted"
+                                  for name, order in orders.items())
+            + f" (errors above {ERROR_FLOOR:g})",
+            "each within [p - 0.3, p + 0.6]",
+        ))
     if "Tsit5" in results:
         order = results["Tsit5"]["fitted_order"]
         checks.append(check(order is not None and order > 4, f"Tsit5 order {order or float('nan'):.1f}", "> 4"))
@@ -294,7 +316,7 @@ FIGURE = Figure(
     note=(
         "`settings` are the step sizes (Dopri8: the tolerances rtol = atol). Wall times are medians "
         "after compilation, of one trajectory to t = 10 on this machine. Energy-exact runs: the "
-        "discrete-gradient methods, their compositions, and Dopri8 with each step projected onto "
+        "discrete-gradient methods, their compositions, the energy-preserving collocations, and Dopri8 with each step projected onto "
         "the energy level and the constraint. The ratio is the energy-exact run's time "
         "over the cheapest run's."
     ),
