@@ -31,6 +31,7 @@ SMALL = {
         repeats=1,
         compositions=("GONZALEZ order 4",),
         composition_step_sizes=(0.25, 0.125, 0.0625),
+        collocations=("EP-COLLOCATION 4",),
     ),
 }
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -129,7 +130,8 @@ def test_work_precision(reproduction):
     _, results = reproduction
     methods = results["fig4"]["methods"]
     assert set(methods) == {
-        "SI-DLA", "GONZALEZ", "GONZALEZ order 4", "Dopri8 (adaptive)", "Dopri8 + projection (adaptive)"
+        "SI-DLA", "GONZALEZ", "GONZALEZ order 4", "EP-COLLOCATION 4", "Dopri8 (adaptive)",
+        "Dopri8 + projection (adaptive)",
     }
     for entry in methods.values():
         assert len(entry["wall_time_s"]) == len(entry["settings"]) and not entry["failed"]
@@ -145,6 +147,9 @@ def test_work_precision(reproduction):
     composed = methods["GONZALEZ order 4"]
     assert max(composed["energy_error"]) < 1e-13
     assert 3.7 <= composed["fitted_order"] <= 4.6
+    collocation = methods["EP-COLLOCATION 4"]
+    assert max(collocation["energy_error"]) < 1e-13
+    assert 3.7 <= collocation["fitted_order"] <= 4.6
 
 
 def test_work_precision_names_the_cheapest_runs(reproduction):

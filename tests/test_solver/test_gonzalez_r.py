@@ -277,10 +277,10 @@ def test_the_metric_is_found_from_the_program():
     """M = I and a constant M known when tracing are used as constants, a metric read from
     `args` is computed once per step, and one the program computes from q (here through a
     term that vanishes: the analysis is structural) at every evaluation."""
-    from nhjax._solver.gonzalez_r import _metric
+    from nhjax._reduced import metric_of
 
     y0 = GEARBOX.random_initial_state(jax.random.key(0))
-    found = {name: _metric(system, y0, args) for name, (system, args) in _METRIC_ROUTES.items()}
+    found = {name: metric_of(system, y0, args) for name, (system, args) in _METRIC_ROUTES.items()}
     assert found["identity"] == "identity"
     assert found["identity, through q"] == "position"
     assert found["constant, through q"] == "position"
