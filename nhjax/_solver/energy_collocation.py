@@ -161,8 +161,13 @@ class EnergyPreservingCollocation(AbstractMethod):
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
 
-    def __init__(self, order: int = 4, quadrature_nodes: int | None = None, root_finder=None,
-                 root_find_max_steps: int = 20):
+    def __init__(
+        self,
+        order: int = 4,
+        quadrature_nodes: int | None = None,
+        root_finder: optx.AbstractRootFinder | None = None,
+        root_find_max_steps: int = 20,
+    ):
         if isinstance(order, bool) or order not in ORDERS:
             raise ValueError(f"EnergyPreservingCollocation: order must be one of {ORDERS}, got {order!r}.")
         stages = order // 2
@@ -198,7 +203,7 @@ class EnergyPreservingCollocation(AbstractMethod):
     def summary(self) -> str:
         return (
             f"energy-preserving collocation at {self.stages} Gauss nodes (Cohen & Hairer), on the reduced "
-            "system in canonical coordinates"
+            "system of a canonical one or on a skew-gradient system"
         )
 
     def _form(self, system, y0, args, signs):
