@@ -202,6 +202,27 @@ def plot(path, results) -> str:
     return save_figure(figure, path)
 
 
+def _high_order_checks(results, names, label, bound, bound_formula) -> list[dict]:
+    """The energy of the high-order runs `names` (described as `label`) within the
+    roundoff `bound`, and each one's fitted order within [p - 0.3, p + 0.6] of its
+    method's order p."""
+    worst = max((error for name in names for error in results[name]["energy_error"]), default=0.0)
+    orders = {name: results[name]["fitted_order"] for name in names}
+    expected = {name: METHODS[name].solver.order(None) for name in names}
+    return [
+        check(worst <= bound, f"energy error of {label} <= {worst:.0e} at every step size",
+              f"<= {bound_formula} = {bound:.0e} (roundoff)"),
+        check(
+            all(order is not None and expected[name] - 0.3 <= order <= expected[name] + 0.6
+                for name, order in orders.items()),
+            "orders " + ", ".join(f"{name} {order:.2f}" if order is not None else f"{name} not fitted"
+                                  for name, order in orders.items())
+            + f" (errors above {ERROR_FLOOR:g})",
+            "each within [p - 0.3, p + 0.6]",
+        ),
+    ]
+
+
 def run(context: Context) -> dict:
     sizes = context.sizes
     quartic = Quartic()
@@ -228,36 +249,15 @@ def run(context: Context) -> dict:
     if compositions:
         substeps = max(METHODS[name].solver.stages for name in compositions)
         composition_bound = roundoff(substeps * round(FINAL_TIME / min(sizes.composition_step_sizes)))
-        worst = max((error for name in compositions for error in results[name]["energy_error"]), default=0.0)
-        checks.append(check(worst <= composition_bound,
-                            f"energy error of the compositions <= {worst:.0e} at every step size",
-                            f"<= 100 eps sqrt(substeps) = {composition_bound:.0e} (roundoff)"))
-        orders = {name: results[name]["fitted_order"] for name in compositions}
-        checks.append(check(
-            all(order is not None and COMPOSITIONS[name] - 0.3 <= order <= COMPOSITIONS[name] + 0.6
-                for name, order in orders.items()),
-            "orders " + ", ".join(f"{name} {order:.2f}" if order is not None else f"{name} not fitted"
-                                  for name, order in orders.items())
-            + f" (errors above {ERROR_FLOOR:g})",
-            "each within [p - 0.3, p + 0.6]",
-        ))
+        checks += _high_order_checks(
+            results, compositions, "the compositions", composition_bound, "100 eps sqrt(substeps)"
+        )
     collocations = list(sizes.collocations)
     if collocations:
         collocation_bound = roundoff(round(FINAL_TIME / min(sizes.composition_step_sizes)))
-        worst = max((error for name in collocations for error in results[name]["energy_error"]), default=0.0)
-        checks.append(check(worst <= collocation_bound,
-                            f"energy error of the energy-preserving collocations <= {worst:.0e} at every step size",
-                            f"<= 100 eps sqrt(N) = {collocation_bound:.0e} (roundoff)"))
-        expected = {name: METHODS[name].solver.order(None) for name in collocations}
-        orders = {name: results[name]["fitted_order"] for name in collocations}
-        checks.append(check(
-            all(order is not None and expected[name] - 0.3 <= order <= expected[name] + 0.6
-                for name, order in orders.items()),
-            "orders " + ", ".join(f"{name} {order:.2f}" if order is not None else f"{name} not fitted"
-                                  for name, order in orders.items())
-            + f" (errors above {ERROR_FLOOR:g})",
-            "each within [p - 0.3, p + 0.6]",
-        ))
+        checks += _high_order_checks(
+            results, collocations, "the energy-preserving collocations", collocation_bound, "100 eps sqrt(N)"
+        )
     if "Tsit5" in results:
         order = results["Tsit5"]["fitted_order"]
         checks.append(check(order is not None and order > 4, f"Tsit5 order {order or float('nan'):.1f}", "> 4"))
