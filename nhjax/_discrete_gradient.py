@@ -242,6 +242,18 @@ def _validated_difference(operands):
     return jnp.where(jnp.abs(difference - printed) <= _AGREEMENT * rounding, difference, printed)
 
 
+def _difference_operands(f, x, x1, args, f_x, f_x1, segment):
+    """What $f(x') - f(x)$ is taken from (`value_difference`, `gonzalez_correction`): the
+    values' difference, the operands of `_validated_difference`, and whether the points
+    are nearly equal (`_is_near`)."""
+    f_x = f(x, args) if f_x is None else f_x
+    f_x1 = f(x1, args) if f_x1 is None else f_x1
+    printed = f_x1 - f_x
+    rounding = jax.lax.stop_gradient(float(jnp.finfo(x.dtype).eps) * (jnp.abs(f_x) + jnp.abs(f_x1)))
+    operands = ((Gradient(f), x, x1) if segment is None else segment) + (args, printed, rounding)
+    return printed, operands, jnp.all(_is_near(x, x1, x1 - x))
+
+
 def value_difference(
     f: ScalarFunction,
     x: Float[Array, " N"],
@@ -258,13 +270,7 @@ def value_difference(
     `segment_difference(*segment, args)` where it agrees with the values' difference
     to a few roundings (`_validated_difference`). `branch` as there; the derivatives
     are those of the selected form."""
-    delta = x1 - x
-    f_x = f(x, args) if f_x is None else f_x
-    f_x1 = f(x1, args) if f_x1 is None else f_x1
-    printed = f_x1 - f_x
-    rounding = jax.lax.stop_gradient(float(jnp.finfo(x.dtype).eps) * (jnp.abs(f_x) + jnp.abs(f_x1)))
-    operands = ((Gradient(f), x, x1) if segment is None else segment) + (args, printed, rounding)
-    near = jnp.all(_is_near(x, x1, delta))
+    printed, operands, near = _difference_operands(f, x, x1, args, f_x, f_x1, segment)
     if branch == "rarely":
         return rarely(near, _validated_difference, printed, operands)
     return jax.lax.cond(near, lambda: _validated_difference(operands), lambda: printed)
@@ -307,17 +313,12 @@ def gonzalez_correction(
     delta = x1 - x
     squared_length = delta @ delta
     zero = squared_length == 0
-    f_x = f(x, args) if f_x is None else f_x
-    f_x1 = f(x1, args) if f_x1 is None else f_x1
-    printed = f_x1 - f_x
+    printed, operands, near = _difference_operands(f, x, x1, args, f_x, f_x1, segment)
 
     def correction(difference):
         numerator = difference - gradient @ delta
         return (numerator / jnp.where(zero, 1.0, squared_length)) * jnp.where(zero, 0.0, delta)
 
-    rounding = jax.lax.stop_gradient(float(jnp.finfo(x.dtype).eps) * (jnp.abs(f_x) + jnp.abs(f_x1)))
-    operands = ((Gradient(f), x, x1) if segment is None else segment) + (args, printed, rounding)
-    near = jnp.all(_is_near(x, x1, delta))
     if branch == "rarely":
         return gradient + correction(rarely(near, _validated_difference, printed, operands))
 
