@@ -276,12 +276,8 @@ class EnergyPreservingCollocation(AbstractMethod):
         increments = u.reshape(self.stages, -1) * scale
         stages = x + jnp.asarray(tableau.a, dtype=x.dtype) @ increments
         x1 = x + jnp.asarray(tableau.b, dtype=x.dtype) @ increments
-        points = [_point(form, stage, args) for stage in stages]
-        if tableau.shares_nodes:
-            gradients = jnp.stack([point.gradient for point in points])
-        else:
-            nodes = x + jnp.asarray(tableau.quadrature_points, dtype=x.dtype) @ increments
-            gradients = jnp.stack([_point(form, node, args).gradient for node in nodes])
+        nodes = stages if tableau.shares_nodes else x + jnp.asarray(tableau.quadrature_points, dtype=x.dtype) @ increments
+        gradients = jax.vmap(lambda node: _point(form, node, args).gradient)(nodes)
         averaged = jnp.asarray(tableau.quadrature_weights, dtype=x.dtype) @ gradients
         delta = x1 - x
         squared_length = delta @ delta
@@ -297,17 +293,14 @@ class EnergyPreservingCollocation(AbstractMethod):
         coefficient = (difference - quadrature) / jnp.where(zero, 1.0, squared_length)
         corrected = averaged + jnp.where(zero, 0.0, coefficient) * delta
         times = data.t + jnp.asarray(tableau.c, dtype=x.dtype) * h
-        fields, powers = zip(*[
-            _stage_field(form, time, stage, point, g, args)
-            for time, stage, point, g in zip(times, stages, points, corrected)
-        ])
-        residual = ((increments - h * jnp.stack(fields)) / scale).reshape(-1)
-        if powers[0] is None:
+        fields, powers = jax.vmap(
+            lambda time, stage, g: _stage_field(form, time, stage, _point(form, stage, args), g, args)
+        )(times, stages, corrected)
+        residual = ((increments - h * fields) / scale).reshape(-1)
+        if powers is None:
             return residual, None
         weights = h * jnp.asarray(tableau.b, dtype=x.dtype)
-        supplied = weights @ jnp.stack([power[0] for power in powers])
-        dissipated = weights @ jnp.stack([power[1] for power in powers])
-        return residual, (supplied, dissipated)
+        return residual, (weights @ powers[0], weights @ powers[1])
 
     def root_find_residual(self, u, data):
         return self.residual(u, data, branch="rarely")
