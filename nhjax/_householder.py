@@ -21,6 +21,7 @@ derivative of $k$ reflections of one vector.
 """
 
 import equinox as eqx
+import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -28,35 +29,59 @@ from jaxtyping import Array, Float
 from ._linalg import safe_norm
 
 
-def _reflectors(a_t, signs):
-    r"""The unit Householder vectors (as rows, zero above their pivot), the pivots
-    $|\tilde w_j|/\sqrt2$, R's diagonal magnitudes |x_j|, and the signs used."""
-    n, k = a_t.shape
-    r = a_t
-    vectors, pivots, norms, used = [], [], [], []
+# Up to this many reflections the loops over them are unrolled: the fewest operations
+# for the few constraints of most systems. Beyond it they run as `lax.scan`, whose
+# program does not grow with k: unrolled, every factorisation, product and derivative
+# of them in a step is k copies, and at k = 16 (n = 64 in `benchmarks/scaling.py`)
+# they set the compile time.
+UNROLLED_REFLECTIONS = 4
+
+
+def _reflection(r, j, given_sign):
+    r"""Step $j$ of the factorisation of the partly reduced `r`: the reflected `r`, and
+    the unit vector $w_j$, the pivot $|\tilde w_j|/\sqrt2$, $|x_j|$ and the sign used
+    (the stable one where `given_sign` is `None`)."""
+    n = r.shape[0]
+    index = np.arange(n) if isinstance(j, int) else jnp.arange(n)
     # Every vector at full length n, masked below the pivot rather than sliced: the
     # same arithmetic in far fewer operations (slices, pads and their derivatives'
     # scatters), which on XLA:CPU set the cost of the small factorisations here.
+    column = r[:, j]
+    x = jnp.where(index >= j, column, 0.0)
+    leading = column[j]
+    # Finite derivatives at x = 0, where the factorisation breaks down and the caller
+    # reports rank deficiency.
+    norm = safe_norm(x)
+    sign = jnp.where(leading >= 0, 1.0, -1.0).astype(r.dtype) if given_sign is None else given_sign
+    length_sq = 2 * (norm**2 + sign * leading * norm)
+    length = jnp.sqrt(jnp.where(length_sq > 0, length_sq, 1.0))
+    w = (x + jnp.where(index == j, sign * norm, 0.0)) / length
+    # The columns before j are not read again, and column j's image is known
+    # (-s_j|x|e_1): only the columns after j need the reflection, but reflecting
+    # all k keeps the shapes fixed.
+    r = r - 2 * jnp.outer(w, w @ r)
+    return r, (w, jnp.sqrt(jnp.maximum(length_sq, 0.0) / 2), norm, sign)
+
+
+def _reflectors(a_t, signs):
+    r"""The unit Householder vectors (as rows, zero above their pivot), the pivots
+    $|\tilde w_j|/\sqrt2$, R's diagonal magnitudes |x_j|, and the signs used."""
+    k = a_t.shape[1]
+    if k > UNROLLED_REFLECTIONS:
+        def step(r, j_and_sign):
+            j, given_sign = j_and_sign
+            return _reflection(r, j, None if signs is None else given_sign)
+
+        given = jnp.zeros((k,), a_t.dtype) if signs is None else signs
+        _, (vectors, pivots, norms, used) = lax.scan(step, a_t, (jnp.arange(k), given))
+        return vectors, pivots, norms, used
+    r = a_t
+    outputs = []
     for j in range(k):
-        below = np.arange(n) >= j
-        x = jnp.where(below, r[:, j], 0.0)
-        leading = r[j, j]
-        # Finite derivatives at x = 0, where the factorisation breaks down and the caller
-        # reports rank deficiency.
-        norm = safe_norm(x)
-        sign = jnp.where(leading >= 0, 1.0, -1.0).astype(a_t.dtype) if signs is None else signs[j]
-        length_sq = 2 * (norm**2 + sign * leading * norm)
-        length = jnp.sqrt(jnp.where(length_sq > 0, length_sq, 1.0))
-        w = (x + jnp.where(np.arange(n) == j, sign * norm, 0.0)) / length
-        # The columns before j are not read again, and column j's image is known
-        # (-s_j|x|e_1): only the columns after j need the reflection, but reflecting
-        # all k keeps the shapes fixed.
-        r = r - 2 * jnp.outer(w, w @ r)
-        vectors.append(w)
-        pivots.append(jnp.sqrt(jnp.maximum(length_sq, 0.0) / 2))
-        norms.append(norm)
-        used.append(sign)
-    return vectors, jnp.stack(pivots), jnp.stack(norms), jnp.stack(used)
+        r, output = _reflection(r, j, None if signs is None else signs[j])
+        outputs.append(output)
+    vectors, pivots, norms, used = zip(*outputs)
+    return jnp.stack(vectors), jnp.stack(pivots), jnp.stack(norms), jnp.stack(used)
 
 
 def householder_pivots(
@@ -93,20 +118,37 @@ class HouseholderFrame(eqx.Module):
         """$Xv$, for a vector or a matrix `v`."""
         k = self.vectors.shape[0]
         x = jnp.concatenate([jnp.zeros((k, *v.shape[1:]), v.dtype), v])
-        for w in reversed(list(self.vectors)):
-            x = x - 2 * (jnp.outer(w, w @ x) if x.ndim == 2 else w * (w @ x))
-        return x
+        return _reflect(x, self.vectors, _reflected, reverse=True)
 
     def transpose_times(self, v: Float[Array, " n"]) -> Float[Array, " m"]:
         """$X^Tv$."""
-        for w in self.vectors:
-            v = v - 2 * w * (w @ v)
-        return v[self.vectors.shape[0] :]
+        return _reflect(v, self.vectors, _reflected_vector, reverse=False)[self.vectors.shape[0] :]
 
     def matrix(self) -> Float[Array, "n m"]:
         """$X$ itself."""
         n, m = self.shape
         return self.times(jnp.eye(m, dtype=self.vectors.dtype))
+
+
+def _reflected(x, w):
+    """$(I - 2ww^T)x$ for a vector or a matrix `x`."""
+    return x - 2 * (jnp.outer(w, w @ x) if x.ndim == 2 else w * (w @ x))
+
+
+def _reflected_vector(v, w):
+    """$(I - 2ww^T)v$, grouped as $X^Tv$ has always grouped it (another grouping would
+    round differently where the compiler fuses a multiply-add)."""
+    return v - 2 * w * (w @ v)
+
+
+def _reflect(x, vectors, reflect, reverse: bool):
+    """$H_1\cdots H_kx$ (`reverse`: the last reflection first) or $H_k\cdots H_1x$ by
+    `reflect`."""
+    if vectors.shape[0] > UNROLLED_REFLECTIONS:
+        return lax.scan(lambda x, w: (reflect(x, w), None), x, vectors, reverse=reverse)[0]
+    for w in reversed(list(vectors)) if reverse else vectors:
+        x = reflect(x, w)
+    return x
 
 
 class FormedFrame(eqx.Module):
@@ -132,7 +174,7 @@ class FormedFrame(eqx.Module):
 
 def householder_frame_operator(a_t: Float[Array, "n k"], signs: Float[Array, " k"]) -> HouseholderFrame:
     """The frame of `householder_frame` as a `HouseholderFrame`, not formed."""
-    return HouseholderFrame(jnp.stack(_reflectors(a_t, signs)[0]))
+    return HouseholderFrame(_reflectors(a_t, signs)[0])
 
 
 def householder_frame(
@@ -146,4 +188,4 @@ def householder_frame(
     Only the last $m$ columns are formed: $X = H_1 \cdots H_k [0; I_m]$.
     """
     vectors, pivots, _, _ = _reflectors(a_t, signs)
-    return HouseholderFrame(jnp.stack(vectors)).matrix(), jnp.min(pivots)
+    return HouseholderFrame(vectors).matrix(), jnp.min(pivots)

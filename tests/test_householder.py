@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nhjax._householder import householder_frame, householder_frame_operator, householder_signs
+import nhjax._householder
+from nhjax._householder import householder_frame, householder_frame_operator, householder_pivots, householder_signs
 
 
 def _matrix(seed, n, k):
@@ -22,11 +23,12 @@ def _frame_and_pivot(a_t):
 
 
 @hypothesis.settings(deadline=None, max_examples=40)
-@hypothesis.given(seed=st.integers(0, 2**31 - 1), shape=st.sampled_from([(3, 1), (4, 2), (7, 1), (6, 3), (5, 4)]))
+@hypothesis.given(seed=st.integers(0, 2**31 - 1), shape=st.sampled_from([(3, 1), (4, 2), (7, 1), (6, 3), (5, 4), (9, 6)]))
 def test_frame_is_the_complement_of_lapacks_householder_qr(seed, shape):
     """The stable signs are LAPACK's (its reflector of x is x + sign(x_1)|x| e_1, so
     R_jj = -s_j |R_jj|), so the frame is the last n - k columns of LAPACK's complete Q,
-    an independent implementation of the same factorisation."""
+    an independent implementation of the same factorisation. (9, 6): more reflections
+    than are unrolled, so by `lax.scan`."""
     n, k = shape
     a_t = _matrix(seed, n, k)
     frame, pivot, signs = _frame_and_pivot(a_t)
@@ -101,3 +103,50 @@ def test_rank_loss_shows_in_the_pivot(dtype, tolerance):
     _, pivot_parallel = householder_frame(parallel, householder_signs(parallel))
     assert float(pivot_full) > 0.5
     assert float(pivot_parallel) <= 10 * tolerance
+
+
+def _wide_constraints(q):
+    """A smooth (6, 10) constraint matrix: more rows than the reflections that are
+    unrolled (`UNROLLED_REFLECTIONS`)."""
+    rows = jnp.arange(6)
+    a = jnp.zeros((6, 10)).at[rows, rows].set(1.0 + 0.1 * jnp.cos(q[rows]))
+    return a.at[rows, rows + 4].set(jnp.sin(q[rows + 2]) * q[rows + 1]).at[rows, 9].add(0.3 * q[0])
+
+
+def test_scanned_and_unrolled_reflections_agree(monkeypatch):
+    """Above `UNROLLED_REFLECTIONS` constraints the factorisation and the products with
+    the frame run as scans: the same values, products and derivatives as the unrolled
+    loops, to roundoff."""
+    assert nhjax._householder.UNROLLED_REFLECTIONS < 6
+    q = jnp.linspace(-0.8, 1.1, 10)
+    v = jnp.linspace(0.5, -1.5, 10)
+    w = jnp.linspace(-0.3, 0.9, 4)
+    signs = householder_signs(_wide_constraints(q).T)
+
+    def product(x):
+        return householder_frame_operator(_wide_constraints(x).T, signs).transpose_times(v)
+
+    def everything(x):
+        a_t = _wide_constraints(x).T
+        operator = householder_frame_operator(a_t, signs)
+        return dict(
+            frame=householder_frame(a_t, signs)[0],
+            pivots=householder_pivots(a_t, signs),
+            stable_signs=householder_signs(a_t),
+            transpose_times=operator.transpose_times(v),
+            times=operator.times(w),
+            times_matrix=operator.times(jnp.outer(w, v[:3])),
+            derivative=jax.jacfwd(product)(x),
+            reverse_derivative=jax.jacrev(product)(x),
+        )
+
+    scanned = jax.jit(everything)(q)
+    monkeypatch.setattr(nhjax._householder, "UNROLLED_REFLECTIONS", 16)
+    unrolled = jax.jit(everything)(q)
+    for name in scanned:
+        for a, b in zip(jax.tree.leaves(scanned[name]), jax.tree.leaves(unrolled[name])):
+            np.testing.assert_allclose(a, b, atol=1e-14, err_msg=name)
+    frame = scanned["frame"]
+    np.testing.assert_allclose(_wide_constraints(q) @ frame, 0.0, atol=1e-14)
+    np.testing.assert_allclose(frame.T @ frame, np.eye(4), atol=1e-14)
+    np.testing.assert_allclose(scanned["transpose_times"], frame.T @ v, atol=1e-14)
