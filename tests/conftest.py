@@ -1,8 +1,8 @@
 import os
 import shutil
-import subprocess
-import sys
 import tempfile
+
+from _nhjax_command import xla_knows
 
 # Most of the suite's time is XLA compiling programs that then run for milliseconds, so
 # the suite compiles them to compile fast, with results that differ by roundoff only
@@ -18,18 +18,10 @@ import tempfile
 _FAST_COMPILATION_FLAGS = {"--xla_backend_optimization_level": "0", "--xla_cpu_use_fusion_emitters": "false"}
 
 
-def _xla_knows(flag: str) -> bool:
-    """Whether this jaxlib's XLA accepts `flag` (it aborts the process on one it does not
-    know, as older versions would on the emitter flag)."""
-    probe = "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"
-    environment = dict(os.environ, XLA_FLAGS=flag, JAX_PLATFORMS="cpu")
-    return subprocess.run([sys.executable, "-c", probe], env=environment, capture_output=True).returncode == 0
-
-
 if "PYTEST_XDIST_WORKER" not in os.environ:
     _flags = os.environ.get("XLA_FLAGS", "")
     for _name, _value in _FAST_COMPILATION_FLAGS.items():
-        if _name not in _flags and _xla_knows(f"{_name}={_value}"):
+        if _name not in _flags and xla_knows(f"{_name}={_value}"):
             _flags = f"{_flags} {_name}={_value}".strip()
     os.environ["XLA_FLAGS"] = _flags
 

@@ -10,6 +10,7 @@ import jax
 import numpy as np
 import pytest
 
+import _nhjax_command
 import nhjax as nh
 from nhjax._cli import FIGURES, main, METHODS, SYSTEMS
 
@@ -143,6 +144,23 @@ _ARGUMENTS = ["simulate", "gearbox", "--method", "gonzalez-r", "--dt", "0.01", "
 # comes to a process with Python's handler, which the child installs first. The child
 # enters through the command's entry point (`_nhjax_command`), as the `nhjax` script does.
 _CHILD = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+
+
+def test_the_command_compiles_with_the_loop_emitter_unless_told_otherwise(monkeypatch):
+    """The command adds XLA:CPU's loop emitter to `XLA_FLAGS` (this jaxlib knows it,
+    as the suite's own flags show), keeps the other flags, and leaves a user's choice of
+    the emitters alone."""
+    assert _nhjax_command.xla_knows(_nhjax_command.LOOP_EMITTER)
+    assert not _nhjax_command.xla_knows("--xla_no_such_flag_in_any_xla=true")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=1")
+    _nhjax_command.prefer_loop_emitter()
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_backend_optimization_level=1", _nhjax_command.LOOP_EMITTER]
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    _nhjax_command.prefer_loop_emitter()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    monkeypatch.delenv("XLA_FLAGS")
+    _nhjax_command.prefer_loop_emitter()
+    assert os.environ["XLA_FLAGS"] == _nhjax_command.LOOP_EMITTER
 
 
 def test_an_interrupt_ends_the_command_cleanly(tmp_path):
