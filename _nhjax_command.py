@@ -2,7 +2,7 @@
 imports JAX, XLA and every method, which takes seconds (more on a loaded machine), and a
 Ctrl-C in that time would end the command with a traceback. This module installs the
 command's interrupt handler first, chooses XLA's flags for the command
-(`prefer_loop_emitter`), then imports the package (`nhjax._cli.main`)."""
+(`add_xla_flags`), then imports the package (`nhjax._cli.main`)."""
 
 import os
 import signal
@@ -28,12 +28,15 @@ def xla_knows(flag: str) -> bool:
     return subprocess.run([sys.executable, "-c", probe], env=environment, capture_output=True).returncode == 0
 
 
-def prefer_loop_emitter() -> None:
-    """Add `LOOP_EMITTER` to `XLA_FLAGS` where they do not choose the emitters and XLA
-    knows the flag; before JAX starts XLA."""
+def add_xla_flags(wanted: list[str]) -> None:
+    """Add each `--name=value` of `wanted` to `XLA_FLAGS` where they do not set `--name`
+    already and this XLA knows the flag; before JAX starts XLA. (The command's flags,
+    and the test suite's.)"""
     flags = os.environ.get("XLA_FLAGS", "")
-    if LOOP_EMITTER.split("=")[0] not in flags and xla_knows(LOOP_EMITTER):
-        os.environ["XLA_FLAGS"] = f"{flags} {LOOP_EMITTER}".strip()
+    for flag in wanted:
+        if flag.split("=")[0] not in flags and xla_knows(flag):
+            flags = f"{flags} {flag}".strip()
+    os.environ["XLA_FLAGS"] = flags
 
 
 def _leave_on_interrupt(*_) -> None:
@@ -50,7 +53,7 @@ def main(argv=None) -> int:
         None,
     ):
         signal.signal(signal.SIGINT, _leave_on_interrupt)
-    prefer_loop_emitter()
+    add_xla_flags([LOOP_EMITTER])
     from nhjax._cli import main as command
 
     return command(argv)

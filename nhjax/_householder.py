@@ -73,8 +73,7 @@ def _reflectors(a_t, signs):
             return _reflection(r, j, None if signs is None else given_sign)
 
         given = jnp.zeros((k,), a_t.dtype) if signs is None else signs
-        _, (vectors, pivots, norms, used) = lax.scan(step, a_t, (jnp.arange(k), given))
-        return vectors, pivots, norms, used
+        return lax.scan(step, a_t, (jnp.arange(k), given))[1]
     r = a_t
     outputs = []
     for j in range(k):

@@ -2,7 +2,7 @@ import os
 import shutil
 import tempfile
 
-from _nhjax_command import xla_knows
+from _nhjax_command import add_xla_flags, LOOP_EMITTER
 
 # Most of the suite's time is XLA compiling programs that then run for milliseconds, so
 # the suite compiles them to compile fast, with results that differ by roundoff only
@@ -15,15 +15,8 @@ from _nhjax_command import xla_knows
 # --xla_cpu_use_fusion_emitters=true` runs the suite on the programs as users' runs
 # compile them. Set in the controlling process before JAX starts XLA; the test workers
 # and the processes they start inherit it.
-_FAST_COMPILATION_FLAGS = {"--xla_backend_optimization_level": "0", "--xla_cpu_use_fusion_emitters": "false"}
-
-
 if "PYTEST_XDIST_WORKER" not in os.environ:
-    _flags = os.environ.get("XLA_FLAGS", "")
-    for _name, _value in _FAST_COMPILATION_FLAGS.items():
-        if _name not in _flags and xla_knows(f"{_name}={_value}"):
-            _flags = f"{_flags} {_name}={_value}".strip()
-    os.environ["XLA_FLAGS"] = _flags
+    add_xla_flags(["--xla_backend_optimization_level=0", LOOP_EMITTER])
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

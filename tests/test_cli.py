@@ -153,13 +153,13 @@ def test_the_command_compiles_with_the_loop_emitter_unless_told_otherwise(monkey
     assert _nhjax_command.xla_knows(_nhjax_command.LOOP_EMITTER)
     assert not _nhjax_command.xla_knows("--xla_no_such_flag_in_any_xla=true")
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=1")
-    _nhjax_command.prefer_loop_emitter()
+    _nhjax_command.add_xla_flags([_nhjax_command.LOOP_EMITTER])
     assert os.environ["XLA_FLAGS"].split() == ["--xla_backend_optimization_level=1", _nhjax_command.LOOP_EMITTER]
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-    _nhjax_command.prefer_loop_emitter()
+    _nhjax_command.add_xla_flags([_nhjax_command.LOOP_EMITTER])
     assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
     monkeypatch.delenv("XLA_FLAGS")
-    _nhjax_command.prefer_loop_emitter()
+    _nhjax_command.add_xla_flags([_nhjax_command.LOOP_EMITTER])
     assert os.environ["XLA_FLAGS"] == _nhjax_command.LOOP_EMITTER
 
 

@@ -293,6 +293,9 @@ class EnergyPreservingCollocation(AbstractMethod):
         coefficient = (difference - quadrature) / jnp.where(zero, 1.0, squared_length)
         corrected = averaged + jnp.where(zero, 0.0, coefficient) * delta
         times = data.t + jnp.asarray(tableau.c, dtype=x.dtype) * h
+        # `_point` at the stages is traced again here (its products with Pi are
+        # closures, which a vmap cannot return); XLA merges the copies, so the frames
+        # are factorised once per stage.
         fields, powers = jax.vmap(
             lambda time, stage, g: _stage_field(form, time, stage, _point(form, stage, args), g, args)
         )(times, stages, corrected)
