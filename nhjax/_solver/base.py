@@ -92,17 +92,54 @@ def _implicit_root_jvp(primals, tangents, *, residual, replayed: bool = False):
     # The root as a function of the data again, so that differentiating this rule (second
     # derivatives) sees the root, and with it the Jacobian below, move with the data.
     root = _implicit_root(root, data, residual=residual, replayed=replayed)
+    _, jacobian, residual_tangent = _linearised(residual, root, data, data_tangent)
+    return root, -jnp.linalg.solve(jacobian, residual_tangent)
+
+
+def _linearised(equations, root, data, data_tangent):
+    r"""`equations(root, data)` (a pytree whose first leaf is the residual), its
+    derivative in the unknowns at `root`, formed (for each output leaf, the unknowns
+    along its last axis), and its derivative along the data's tangent.
+
+    One linearisation serves both derivatives: `equations` is traced (and compiled)
+    once."""
     differentiable = jax.tree.map(lambda t: t is not None, data_tangent, is_leaf=lambda t: t is None)
     varying, fixed = eqx.partition(data, differentiable)
     tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
-    # One linearisation of the residual serves both its Jacobian in the unknowns and its
-    # derivative along the data's tangent: the residual is traced (and compiled) once.
-    _, linear = jax.linearize(lambda u, v: residual(u, eqx.combine(v, fixed)), root, varying)
+    value, linear = jax.linearize(lambda u, v: equations(u, eqx.combine(v, fixed)), root, varying)
     no_tangent = jax.tree.map(jnp.zeros_like, varying)
     unit = jnp.eye(root.shape[0], dtype=root.dtype)
-    jacobian = jax.vmap(lambda e: linear(e, no_tangent), out_axes=1)(unit)
-    residual_tangent = linear(jnp.zeros_like(root), tangent_in)
-    return root, -jnp.linalg.solve(jacobian, residual_tangent)
+    along_unknowns = jax.vmap(lambda e: linear(e, no_tangent), out_axes=-1)(unit)
+    return value, along_unknowns, linear(jnp.zeros_like(root), tangent_in)
+
+
+@eqx.filter_custom_jvp
+def _implicit_root_and_exchange(root, data, *, residual, equations, replayed: bool = False):
+    r"""`_implicit_root`, and the step's exchange at it: `(root, exchange)` with
+    `equations(u, data) = (residual(u, data), exchange(u, data))`
+    (`AbstractMethod.residual_and_exchange`).
+
+    The exchange's derivative $\dot E = \partial_uE\,\dot u + \partial_{\text{data}}E\,
+    \dot{\text{data}}$ comes from the linearisation that gives the root's: a forced
+    system's step is linearised once, not once for the root and again for its
+    exchange, which made derivative programs of forced runs a fifth larger."""
+    root = _implicit_root(root, data, residual=residual, replayed=replayed)
+    return root, equations(root, data)[1]
+
+
+@_implicit_root_and_exchange.def_jvp
+def _implicit_root_and_exchange_jvp(primals, tangents, *, residual, equations, replayed: bool = False):
+    root, data = primals
+    _, data_tangent = tangents
+    # As in `_implicit_root_jvp`; the exchange's value comes from the linearisation,
+    # whose own derivatives (second derivatives) see the root move with the data.
+    root = _implicit_root(root, data, residual=residual, replayed=replayed)
+    (_, exchange), (jacobian, exchange_rows), (residual_tangent, exchange_tangent) = _linearised(
+        equations, root, data, data_tangent
+    )
+    root_tangent = -jnp.linalg.solve(jacobian, residual_tangent)
+    exchange_tangent = jax.tree.map(lambda along_data, row: along_data + row @ root_tangent, exchange_tangent, exchange_rows)
+    return (root, exchange), (root_tangent, exchange_tangent)
 
 
 class AbstractMethodState(eqx.Module):
@@ -253,6 +290,11 @@ class AbstractMethod(diffrax.AbstractSolver):
     def residual(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, " u"]:
         raise NotImplementedError
 
+    def residual_and_exchange(self, unknowns: Float[Array, " u"], data: Any) -> tuple[Array, tuple[Array, Array]]:
+        """`residual` and `exchange` at `unknowns`; a method whose two share their
+        evaluation computes them once."""
+        return self.residual(unknowns, data), self.exchange(unknowns, data)
+
     def root_find_residual(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, " u"]:
         return self.residual(unknowns, data)
 
@@ -390,17 +432,24 @@ class AbstractMethod(diffrax.AbstractSolver):
         implicit function theorem gives the step (`_implicit_root`). For derivatives of
         a whole run without the root finder in them (`nhjax._replay`)."""
         _, data = self.setup(system, t, h, unledgered(y0), args, carry)
-        root = _implicit_root(lax.stop_gradient(root), data, residual=self.residual, replayed=True)
-        y1, carry = self.complete(root, data)
-        return self._entered(y0, y1, root, data)[0], carry
+        _, y1, carry, _ = self._completed(y0, lax.stop_gradient(root), data, replayed=True)
+        return y1, carry
 
-    def _entered(self, y0, y1, root, data) -> tuple[PyTree[Array], Array]:
-        """`y1`, with `y0`'s ledger (if it has one) after the step's `exchange`, and
-        whether the exchange is finite."""
+    def _completed(self, y0, root, data, replayed: bool = False):
+        r"""The step from `y0` whose root is `root`, with the root's derivatives
+        (`_implicit_root`): the root, the new state (with `y0`'s ledger, if it has one,
+        after the step's exchange, whose derivatives share the root's linearisation,
+        `_implicit_root_and_exchange`), the carry, and whether the exchange is finite."""
         if not isinstance(y0, Ledgered):
-            return y1, jnp.array(True)
-        supplied, dissipated = self.exchange(root, data)
-        return y0.after(y1, supplied, dissipated), jnp.isfinite(supplied) & jnp.isfinite(dissipated)
+            root = _implicit_root(root, data, residual=self.residual, replayed=replayed)
+            y1, carry = self.complete(root, data)
+            return root, y1, carry, jnp.array(True)
+        root, (supplied, dissipated) = _implicit_root_and_exchange(
+            root, data, residual=self.residual, equations=self.residual_and_exchange, replayed=replayed
+        )
+        y1, carry = self.complete(root, data)
+        finite = jnp.isfinite(supplied) & jnp.isfinite(dissipated)
+        return root, y0.after(y1, supplied, dissipated), carry, finite
 
     def _advance(self, system, t, h, y0, args, solver_state):
         start = y0
@@ -434,9 +483,8 @@ class AbstractMethod(diffrax.AbstractSolver):
             evaluations_finite = jnp.all(jnp.isfinite(guess))
             singular = jnp.array(False)
         evaluations_finite = evaluations_finite & jnp.isfinite(solution.residual_size)
-        root = _implicit_root(solution.value, data, residual=self.residual)
-        y1, carry = self.complete(root, data)
-        entered, exchange_finite = self._entered(start, y1, root, data)
+        _, entered, carry, exchange_finite = self._completed(start, solution.value, data)
+        y1 = unledgered(entered)
         failure = step_failure(
             evaluations_finite & exchange_finite,
             all_finite(y1),

@@ -164,6 +164,10 @@ class DiscreteGradient(AbstractMethod):
         field, _ = self._equations(u, data, discrete_gradient)
         return u - data.h * field / data.scale
 
+    def residual_and_exchange(self, u, data):
+        field, exchange = self._equations(u, data)
+        return u - data.h * field / data.scale, exchange
+
     def exchange(self, u, data):
         r"""$h\,\bar\nabla H^Tg$ and $h\,\bar\nabla H^TR\bar\nabla H$ (see the
         class docstring)."""

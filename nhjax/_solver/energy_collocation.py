@@ -264,6 +264,9 @@ class EnergyPreservingCollocation(AbstractMethod):
     def residual(self, u, data, branch: Branch = "cond"):
         return self._equations(u, data, branch)[0]
 
+    def residual_and_exchange(self, u, data):
+        return self._equations(u, data)
+
     def exchange(self, u, data):
         r"""$h\sum_ib_iG_i^Tg_i$ and $h\sum_ib_iG_i^TR_iG_i$ (see the class
         docstring)."""

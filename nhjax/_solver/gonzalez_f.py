@@ -129,6 +129,9 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
     def residual(self, unknowns, data, discrete_gradient=gonzalez):
         return self._equations(unknowns, data, discrete_gradient)[0]
 
+    def residual_and_exchange(self, unknowns, data):
+        return self._equations(unknowns, data)
+
     def exchange(self, unknowns, data):
         r"""$h\,\bar v^TF$ and $h\,\bar v^TD\bar v$, $\bar v = \bar\nabla_2H_p$ (see the
         class docstring)."""

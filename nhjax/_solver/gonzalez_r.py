@@ -229,6 +229,10 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         truncation whatever the midpoint gradient, so with either `derivative`."""
         return u - data.h * self._field(u, data, correction, branch)[0] / data.scale
 
+    def residual_and_exchange(self, u, data):
+        field, exchange = self._field(u, data)
+        return u - data.h * field / data.scale, exchange
+
     def exchange(self, u, data):
         r"""$h\,\bar v^TF$ and $h\,\bar v^TD\bar v$ with
         $\bar v = X\bar\nabla_\rho\mathcal{H}$, and $X$, $p$, $D$ and $F$ at the
