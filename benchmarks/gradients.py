@@ -3,8 +3,9 @@ forward run's, and peak memory. On the gearbox (metric the identity) every mode 
 with `--systems`, also on systems whose metric depends on the configuration, H written
 with a linear solve by M(q) as users write it: the Chaplygin sleigh in canonical
 coordinates (h = 0.1) and Euler's disk (`nhjax.examples.rolling_disk_3d`, h = 0.01) from
-its mass matrix and from its Lagrangian, in the modes `forward`, `reverse` and
-`forward-mode`.
+its mass matrix and from its Lagrangian, and a forced system, the differential-drive
+robot under two torque pieces with its wheels' friction (h = 0.05; its loss includes the
+work and the dissipated energy), in the modes `forward`, `reverse` and `forward-mode`.
 
 The loss is a smooth function of the final state after N steps at h = 0.1, for each N in
 `--steps` (default 2 000 and 100 000), differentiated with respect to the initial state
@@ -58,6 +59,9 @@ def _system(name: str):
         sleigh = nh.examples.chaplygin_sleigh()
         start = sleigh.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), sleigh.args)
         return sleigh.canonical, start, 0.1, sleigh.args
+    if name == "robot":
+        robot = nh.examples.differential_drive(torques=((0.05, 0.08), (0.1, -0.02)), duration=2.0)
+        return robot.canonical, robot.start("canonical"), 0.05, robot.args
     from scaling import DISK_START
 
     disk = nh.examples.rolling_disk_3d()
@@ -66,7 +70,7 @@ def _system(name: str):
     return form, start, 0.01, disk.args
 
 
-_SYSTEMS = ("gearbox", "sleigh", "disk", "disk-lagrangian")
+_SYSTEMS = ("gearbox", "sleigh", "disk", "disk-lagrangian", "robot")
 # The modes on the systems beside the gearbox: nhjax's default routes.
 _DEFAULT_MODES = ("forward", "reverse", "forward-mode")
 
@@ -95,7 +99,10 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
     def loss(y0):
         solution = nh.integrate(system, nh.GonzalezR(), y0, dt, steps, args=args, save_every=steps, adjoint=adjoint)
         q, p = solution.ys
-        return jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
+        loss = jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
+        if system.is_forced():  # the energy ledger's derivatives too
+            loss = loss + solution.work[-1] - solution.dissipated[-1]
+        return loss
 
     function = jax.jit(transform(loss))
     compile_s = timed(lambda y: function.lower(y).compile(), y0)
