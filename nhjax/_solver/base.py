@@ -260,7 +260,9 @@ class AbstractMethod(diffrax.AbstractSolver):
     needs). `advance(system, t, h, y0, args, state)` takes one step of signed size `h`
     from time `t`; `step` is diffrax's interface to it. A forced run's states carry
     their energy ledger (`nhjax._ledger.Ledgered`): `advance` and `replay_step` step
-    the state and add the step's `exchange` to the ledger.
+    the state and add the step's `exchange` to the ledger, taken with the residual
+    from `residual_and_exchange`, so that their derivatives share one linearisation
+    (`_implicit_root_and_exchange`).
     """
 
     interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
