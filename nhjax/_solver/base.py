@@ -434,24 +434,24 @@ class AbstractMethod(diffrax.AbstractSolver):
         implicit function theorem gives the step (`_implicit_root`). For derivatives of
         a whole run without the root finder in them (`nhjax._replay`)."""
         _, data = self.setup(system, t, h, unledgered(y0), args, carry)
-        _, y1, carry, _ = self._completed(y0, lax.stop_gradient(root), data, replayed=True)
+        y1, carry, _ = self._completed(y0, lax.stop_gradient(root), data, replayed=True)
         return y1, carry
 
     def _completed(self, y0, root, data, replayed: bool = False):
         r"""The step from `y0` whose root is `root`, with the root's derivatives
-        (`_implicit_root`): the root, the new state (with `y0`'s ledger, if it has one,
-        after the step's exchange, whose derivatives share the root's linearisation,
+        (`_implicit_root`): the new state (with `y0`'s ledger, if it has one, after the
+        step's exchange, whose derivatives share the root's linearisation,
         `_implicit_root_and_exchange`), the carry, and whether the exchange is finite."""
         if not isinstance(y0, Ledgered):
             root = _implicit_root(root, data, residual=self.residual, replayed=replayed)
             y1, carry = self.complete(root, data)
-            return root, y1, carry, jnp.array(True)
+            return y1, carry, jnp.array(True)
         root, (supplied, dissipated) = _implicit_root_and_exchange(
             root, data, residual=self.residual, equations=self.residual_and_exchange, replayed=replayed
         )
         y1, carry = self.complete(root, data)
         finite = jnp.isfinite(supplied) & jnp.isfinite(dissipated)
-        return root, y0.after(y1, supplied, dissipated), carry, finite
+        return y0.after(y1, supplied, dissipated), carry, finite
 
     def _advance(self, system, t, h, y0, args, solver_state):
         start = y0
@@ -485,7 +485,7 @@ class AbstractMethod(diffrax.AbstractSolver):
             evaluations_finite = jnp.all(jnp.isfinite(guess))
             singular = jnp.array(False)
         evaluations_finite = evaluations_finite & jnp.isfinite(solution.residual_size)
-        _, entered, carry, exchange_finite = self._completed(start, solution.value, data)
+        entered, carry, exchange_finite = self._completed(start, solution.value, data)
         y1 = unledgered(entered)
         failure = step_failure(
             evaluations_finite & exchange_finite,
