@@ -14,11 +14,14 @@ import jax
 
 def options(description: str, result: str, **defaults) -> argparse.Namespace:
     """The command line: `--name` for each of `defaults` (`--batch-steps` for
-    `batch_steps`), of its default's type, and `--out`, the JSON file, by default
-    `results/<result>.json` beside the scripts."""
+    `batch_steps`), of its default's type (a switch where the default is `False`), and
+    `--out`, the JSON file, by default `results/<result>.json` beside the scripts."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     for name, default in defaults.items():
-        parser.add_argument("--" + name.replace("_", "-"), type=type(default), default=default)
+        if default is False:
+            parser.add_argument("--" + name.replace("_", "-"), action="store_true")
+        else:
+            parser.add_argument("--" + name.replace("_", "-"), type=type(default), default=default)
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / f"{result}.json"))
     return parser.parse_args()
 
