@@ -18,6 +18,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int, PyTree, Scalar
 
 from .._ledger import Ledgered, unledgered
+from .._rare_branch import rarely
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
 from .chord import chord_inverse, ChordSolution, PresetChord
@@ -166,17 +167,45 @@ class AbstractCountingState(AbstractMethodState):
         return dict(root_find_steps=self.total_steps, max_root_find_steps=self.max_steps)
 
 
+class ChordMemory(eqx.Module):
+    """The chord matrix of the last step and its inverse, kept for the next step
+    (`AbstractMethod.reuses_chord_matrix`): `key`, what it was formed for
+    (`AbstractMethod.chord_key`; NaN before the first step, so that it matches
+    nothing); the iterations the step that formed it took, those of the last step, and
+    the chord matrices formed so far."""
+
+    jacobian: Float[Array, "u u"]
+    inverse: Float[Array, "u u"]
+    key: Float[Array, " c"]
+    fresh_iterations: Int[Array, ""]
+    last_iterations: Int[Array, ""]
+    formed: Int[Array, ""]
+
+
 class MethodState(AbstractCountingState):
     """The diffrax solver state of an nhjax method: root-finder iterations so far, the
-    nhjax code of the step that failed, if one did, and what the method carries from
-    one step to the next (`AbstractMethod.initial_carry`)."""
+    nhjax code of the step that failed, if one did, what the method carries from
+    one step to the next (`AbstractMethod.initial_carry`), and, for a method that
+    reuses its chord matrix, that matrix (`ChordMemory`)."""
 
     failure: RESULTS
     carry: PyTree = None
+    chord: ChordMemory | None = None
 
-    def record(self, steps: Int[Array, ""], failure: RESULTS, carry: PyTree) -> "MethodState":
+    def statistics(self) -> dict[str, Array]:
+        """`root_find_steps` and `max_root_find_steps` (`AbstractCountingState`), and
+        for a method that reuses its chord matrix `chord_matrices`, the chord matrices
+        formed (and inverted) in all."""
+        statistics = super().statistics()
+        if self.chord is not None:
+            statistics["chord_matrices"] = self.chord.formed
+        return statistics
+
+    def record(
+        self, steps: Int[Array, ""], failure: RESULTS, carry: PyTree, chord: ChordMemory | None = None
+    ) -> "MethodState":
         return MethodState(
-            self.total_steps + steps, jnp.maximum(self.max_steps, steps), failure, carry
+            self.total_steps + steps, jnp.maximum(self.max_steps, steps), failure, carry, chord
         )
 
 
@@ -340,10 +369,43 @@ class AbstractMethod(diffrax.AbstractSolver):
         del data
         return None
 
+    def reuses_chord_matrix(self) -> bool:
+        r"""Whether a step starts from the last step's chord matrix and its inverse
+        (`ChordMemory`) instead of forming them, as implicit Runge--Kutta codes keep
+        their simplified-Newton matrix over steps (Hairer & Wanner, *Solving ODEs II*,
+        §IV.8). A kept matrix is used while it was formed for the same `chord_key` (the
+        step size, and whatever else it depends on) and the last step took at most one
+        iteration more than the step that formed it; a root find that fails with a
+        kept matrix is repeated with a fresh one. So only the iteration count, not
+        the root (to the root finder's tolerance) or whether a step succeeds, depends
+        on it, and derivatives, which come from the implicit function theorem with the
+        exact Jacobian, not at all. It pays where forming the matrix costs several
+        iterations (a metric that depends on $q$, many unknowns), and costs where the
+        extra iterations a kept matrix needs are dear against it
+        (`benchmarks/chord_reuse.py` measures both). Default: no; the methods that
+        offer it take `reuse_chord_matrix=True`."""
+        return False
+
+    def chord_key(self, data: Any) -> Float[Array, " c"]:
+        """What the chord matrix of a step with `data` depends on besides the point it is
+        formed at (`reuses_chord_matrix`): by default the step size `data.h`."""
+        return jnp.reshape(lax.stop_gradient(jnp.asarray(data.h)), (1,))
+
     def init(self, terms, t0, t1, y0, args) -> MethodState:
         system, _ = self.system_and_step(terms, t0, t1)
         zero = jnp.array(0, dtype=jnp.int32)
-        return MethodState(zero, zero, RESULTS.successful, self.initial_carry(system, unledgered(y0), args))
+        carry = self.initial_carry(system, unledgered(y0), args)
+        chord = None
+        if self.reuses_chord_matrix() and isinstance(self._root_finder(jax.tree.leaves(y0)[0].dtype), PresetChord):
+            unknowns, key = jax.eval_shape(
+                lambda: (lambda guess, data: (guess, self.chord_key(data)))(
+                    *self.setup(system, t0, t1 - t0, unledgered(y0), args, carry)
+                )
+            )
+            size, dtype = unknowns.shape[0], unknowns.dtype
+            empty = jnp.full((size, size), jnp.nan, dtype)
+            chord = ChordMemory(empty, empty, jnp.full(key.shape, jnp.nan, key.dtype), zero, zero, zero)
+        return MethodState(zero, zero, RESULTS.successful, carry, chord)
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
@@ -460,20 +522,9 @@ class AbstractMethod(diffrax.AbstractSolver):
         # The root find runs on constants; its derivatives come from `_implicit_root`.
         guess, fixed_data = lax.stop_gradient(guess), no_gradient(data)
         root_finder = self._root_finder(guess.dtype)
+        chord = None
         if isinstance(root_finder, PresetChord):
-            jacobian = self.chord_jacobian(guess, fixed_data)
-            inverse = self.chord_matrix_inverse(jacobian, guess, fixed_data)
-            resolution = self.resolution(fixed_data)
-            floor = None if resolution is None else rounding_floor(jacobian, *resolution)
-            solution = root_finder.solve(
-                self.root_find_residual,
-                guess,
-                fixed_data,
-                inverse,
-                self.root_find_max_steps,
-                floor,
-                self.chord_remainder(fixed_data),
-            )
+            solution, jacobian, inverse, chord = self._chord_solve(root_finder, guess, fixed_data, solver_state.chord)
             evaluations_finite = jnp.all(jnp.isfinite(guess)) & jnp.all(jnp.isfinite(jacobian))
             singular = ~jnp.all(jnp.isfinite(inverse))
         else:
@@ -494,7 +545,59 @@ class AbstractMethod(diffrax.AbstractSolver):
             singular,
             solution.result,
         )
-        return entered, solver_state.record(solution.steps, failure, carry), failure, solution.value
+        return entered, solver_state.record(solution.steps, failure, carry, chord), failure, solution.value
+
+    def _fresh_chord(self, operands):
+        """The chord matrix at the guess, and its inverse."""
+        guess, data = operands
+        jacobian = self.chord_jacobian(guess, data)
+        return jacobian, self.chord_matrix_inverse(jacobian, guess, data)
+
+    def _chord_root(self, root_finder, guess, data, jacobian, inverse) -> ChordSolution:
+        resolution = self.resolution(data)
+        floor = None if resolution is None else rounding_floor(jacobian, *resolution)
+        return root_finder.solve(
+            self.root_find_residual, guess, data, inverse, self.root_find_max_steps, floor, self.chord_remainder(data)
+        )
+
+    def _chord_solve(self, root_finder, guess, data, memory: ChordMemory | None):
+        """The chord iteration of a step (constants only), with a fresh chord matrix or,
+        for a method that reuses it (`reuses_chord_matrix`), the kept one where it
+        serves: the solution (its iterations counting a repeat with a fresh matrix),
+        the matrix and inverse used, and the memory for the next step."""
+        if memory is None:
+            jacobian, inverse = self._fresh_chord((guess, data))
+            return self._chord_root(root_finder, guess, data, jacobian, inverse), jacobian, inverse, None
+        key = self.chord_key(data)
+        kept = (
+            jnp.all(memory.key == key)
+            & (memory.last_iterations <= memory.fresh_iterations + 1)
+            & jnp.all(jnp.isfinite(memory.inverse))
+        )
+        jacobian, inverse = rarely(~kept, self._fresh_chord, (memory.jacobian, memory.inverse), (guess, data))
+        solution = self._chord_root(root_finder, guess, data, jacobian, inverse)
+        failed = (solution.result != optx.RESULTS.successful) | ~jnp.isfinite(solution.residual_size)
+
+        def again(operands):
+            guess, data = operands
+            jacobian, inverse = self._fresh_chord(operands)
+            return self._chord_root(root_finder, guess, data, jacobian, inverse), jacobian, inverse
+
+        repeated = kept & failed
+        second, jacobian, inverse = rarely(repeated, again, (solution, jacobian, inverse), (guess, data))
+        steps = jnp.where(repeated, solution.steps + second.steps, second.steps)
+        solution = ChordSolution(second.value, second.result, steps, second.residual_size)
+        fresh = ~kept | repeated
+        iterations = second.steps.astype(memory.last_iterations.dtype)
+        memory = ChordMemory(
+            jacobian,
+            inverse,
+            key,
+            jnp.where(fresh, iterations, memory.fresh_iterations),
+            iterations,
+            memory.formed + fresh.astype(memory.formed.dtype),
+        )
+        return solution, jacobian, inverse, memory
 
 
 @eqx.filter_jit

@@ -140,6 +140,10 @@ class EnergyPreservingCollocation(AbstractMethod):
     - `quadrature_nodes`: $r \ge s$ (default $s$); more nodes make the correction
         smaller, not the energy more exact.
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
+    - `reuse_chord_matrix`: start each step from the last step's chord matrix while
+        it serves (`nhjax.AbstractMethod.reuses_chord_matrix`): its $sN \times sN$
+        matrix, from the field's derivative and $s/2$ complex $N \times N$ inverses,
+        can cost as much as several iterations.
 
     **Dissipation and force.** For $\dot x = (\Pi - R)\nabla H + g(t, x)$ (on the
     reduced form $R_\zeta$ and $g_\zeta$, as for GONZALEZ-R) the stage equations are
@@ -160,6 +164,7 @@ class EnergyPreservingCollocation(AbstractMethod):
     quadrature_nodes: int | None = None
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
+    reuse_chord_matrix: bool = False
 
     def __init__(
         self,
@@ -167,6 +172,7 @@ class EnergyPreservingCollocation(AbstractMethod):
         quadrature_nodes: int | None = None,
         root_finder: optx.AbstractRootFinder | None = None,
         root_find_max_steps: int = 20,
+        reuse_chord_matrix: bool = False,
     ):
         if isinstance(order, bool) or order not in ORDERS:
             raise ValueError(f"EnergyPreservingCollocation: order must be one of {ORDERS}, got {order!r}.")
@@ -183,6 +189,7 @@ class EnergyPreservingCollocation(AbstractMethod):
         self.quadrature_nodes = quadrature_nodes
         self.root_finder = root_finder
         self.root_find_max_steps = root_find_max_steps
+        self.reuse_chord_matrix = bool(reuse_chord_matrix)
 
     def tableau(self) -> CollocationTableau:
         return collocation_tableau(self.stages, self.stages if self.quadrature_nodes is None else self.quadrature_nodes)
@@ -360,6 +367,18 @@ class EnergyPreservingCollocation(AbstractMethod):
         inverse_vectors = jnp.asarray(tableau.eigenvectors_inverse, dtype=complex_dtype)
         inverse = jnp.einsum("ik,kj,kab->iajb", vectors, inverse_vectors, stacked).real
         return inverse.reshape(u.shape[0], u.shape[0]).astype(u.dtype)
+
+    def reuses_chord_matrix(self) -> bool:
+        """`reuse_chord_matrix` (see `nhjax.AbstractMethod.reuses_chord_matrix`)."""
+        return self.reuse_chord_matrix
+
+    def chord_key(self, data):
+        """The step size, and on the reduced form the frame's signs, for which the
+        chord matrix holds."""
+        h = jnp.reshape(lax.stop_gradient(jnp.asarray(data.h, dtype=data.x.dtype)), (1,))
+        if isinstance(data.form, ReducedSystem):
+            return jnp.concatenate([h, data.form.signs.astype(data.x.dtype)])
+        return h
 
     def chord_remainder(self, data):
         """The chord matrix holds the field's derivative at one point (and, on the

@@ -102,6 +102,11 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         energy and constraints, and the correction term's derivatives are its own).
     - `difference_step`: the finite-difference increment, `None` for $|h|$.
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
+    - `reuse_chord_matrix`: start each step from the last step's chord matrix while
+        it serves (`nhjax.AbstractMethod.reuses_chord_matrix`): where the metric
+        depends on $q$ its field derivative costs several iterations, and with the
+        frame held fixed the matrix contracts by $O(h)$ whether it is fresh or a
+        step old.
 
     **Small motions and wound angles.** For nearly equal $\zeta, \zeta'$ (motion too
     small for the values of $\mathcal{H}$ to resolve: oscillations of amplitude
@@ -151,6 +156,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     difference_step: float | None = None
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
+    reuse_chord_matrix: bool = False
 
     def __check_init__(self):
         check_derivative(self.derivative)
@@ -266,6 +272,15 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
 
     def root_find_residual(self, u, data):
         return self.residual(u, data, branch="rarely")
+
+    def reuses_chord_matrix(self) -> bool:
+        """`reuse_chord_matrix` (see `nhjax.AbstractMethod.reuses_chord_matrix`)."""
+        return self.reuse_chord_matrix
+
+    def chord_key(self, data):
+        """The step size and the frame's signs, for which the chord matrix holds."""
+        h = jnp.reshape(lax.stop_gradient(jnp.asarray(data.h, dtype=data.zeta.dtype)), (1,))
+        return jnp.concatenate([h, data.reduced.signs.astype(data.zeta.dtype)])
 
     def simplified_residual(self, u, data):
         return self.residual(u, data, correction=False)

@@ -1,0 +1,134 @@
+"""A method that keeps its chord matrix from step to step (`reuse_chord_matrix=True`,
+`AbstractMethod.reuses_chord_matrix`): fewer matrices formed, the same run to the root
+finder's tolerance, the same derivatives, and a fresh matrix wherever the kept one does
+not serve (another step size, slow convergence, a failed root find)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax as nh
+from nhjax._solver.base import ChordMemory, no_gradient
+
+from ..helpers import canonical_starts, relative_energy_error
+
+
+STARTS = canonical_starts()
+# (label, fresh, kept): a q-dependent metric for GONZALEZ-R, and the collocation.
+CASES = {
+    "GONZALEZ-R, sleigh": (
+        "sleigh, q-dependent M", nh.GonzalezR(), nh.GonzalezR(reuse_chord_matrix=True), 0.1, 200
+    ),
+    "collocation 4, quartic": (
+        "quartic, n = 7",
+        nh.EnergyPreservingCollocation(4),
+        nh.EnergyPreservingCollocation(4, reuse_chord_matrix=True),
+        0.1,
+        100,
+    ),
+}
+
+
+def _distance(a, b) -> float:
+    return max(float(jnp.max(jnp.abs(x - y))) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_kept_matrix_changes_the_iterations_not_the_run(case):
+    label, fresh, kept, h, steps = CASES[case]
+    example, y0 = STARTS[label]
+    reference = nh.integrate(example.canonical, fresh, y0, h, steps, args=example.args, save_every=10)
+    run = nh.integrate(example.canonical, kept, y0, h, steps, args=example.args, save_every=10)
+    assert "chord_matrices" not in reference.stats
+    formed = int(run.stats["chord_matrices"])
+    # Kept at some steps, formed afresh at others (at least at the first).
+    assert 1 <= formed < steps
+    assert _distance(run.ys, reference.ys) <= 1e-12
+    assert relative_energy_error(run) <= 1e-13
+    assert float(jnp.max(jnp.abs(run.constraint))) <= 1e-14
+
+
+def test_a_batch_keeps_each_trajectory_s_own_matrix():
+    label, _, kept, h, steps = CASES["GONZALEZ-R, sleigh"]
+    example, y0 = STARTS[label]
+    states = jax.tree.map(lambda y: jnp.stack([y, 1.3 * y, 0.7 * y]), y0)
+    states = (states[0], jax.vmap(lambda q, p: example.canonical.project_momentum(q, p, example.args))(*states))
+
+    def run(y):
+        return nh.integrate(example.canonical, kept, y, h, steps, args=example.args, save_every=steps)
+
+    batch = jax.jit(jax.vmap(run))(states)
+    for i in range(3):
+        alone = run(jax.tree.map(lambda y: y[i], states))
+        assert _distance(jax.tree.map(lambda y: y[i], batch.ys), alone.ys) <= 1e-12
+        assert 1 <= int(batch.stats["chord_matrices"][i]) < steps
+
+
+def test_derivatives_do_not_depend_on_the_kept_matrix():
+    label, fresh, kept, h, steps = CASES["GONZALEZ-R, sleigh"]
+    example, (q0, p0) = STARTS[label]
+
+    def loss(method):
+        def of(p):
+            final = nh.integrate(example.canonical, method, (q0, p), h, 40, args=example.args, save_every=40).ys
+            return jnp.sum(final[0][-1] ** 2) + jnp.sum(final[1][-1] ** 2)
+
+        return of
+
+    direction = jnp.ones_like(p0)
+    kept_derivative = jax.jvp(loss(kept), (p0,), (direction,))[1]
+    fresh_derivative = jax.jvp(loss(fresh), (p0,), (direction,))[1]
+    assert abs(float(fresh_derivative)) > 0.1
+    np.testing.assert_allclose(kept_derivative, fresh_derivative, rtol=1e-10)
+
+
+def test_a_step_size_change_forms_a_fresh_matrix():
+    """The triple jump's substeps take h1, h2, h1: the middle one, and the first after
+    it, never find a matrix formed for their step size; only a step's first substep,
+    after the last one of the step before, may keep one."""
+    label, _, kept, h, steps = CASES["GONZALEZ-R, sleigh"]
+    example, y0 = STARTS[label]
+    run = nh.integrate(
+        example.canonical, nh.Composition(kept, **nh.COMPOSITION_SCHEMES["triple-jump-4"]), y0, h, 20, args=example.args
+    )
+    formed = int(run.stats["chord_matrices"])
+    assert 2 * 20 <= formed <= 3 * 20
+
+
+def _step(label, method, h):
+    """(method, residual data, guess) of the first step of `method` from the case's start."""
+    example, y0 = STARTS[label]
+    carry = method.initial_carry(example.canonical, y0, example.args)
+    guess, data = method.setup(example.canonical, 0.0, h, y0, example.args, carry)
+    return no_gradient(data), guess
+
+
+def test_a_failing_kept_matrix_is_replaced_by_a_fresh_one():
+    label, _, kept, h, _ = CASES["GONZALEZ-R, sleigh"]
+    data, guess = _step(label, kept, h)
+    root_finder = kept._root_finder(guess.dtype)
+    fresh, jacobian, inverse, _ = kept._chord_solve(root_finder, guess, data, None)
+    key = kept.chord_key(data)
+    one = jnp.array(1, jnp.int32)
+    # A matrix for this step size that cannot move the iterate: the root find fails
+    # with it (too many iterations) and is done again with a fresh one.
+    useless = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps, one)
+    solution, _, used, memory = kept._chord_solve(root_finder, guess, data, useless)
+    assert solution.result == fresh.result
+    # Formed in a branch of its own, so rounded apart from the fresh one above.
+    np.testing.assert_allclose(solution.value, fresh.value, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(used, inverse, rtol=0, atol=1e-15)
+    assert int(solution.steps) == kept.root_find_max_steps + int(fresh.steps)
+    assert int(memory.formed) == 2 and int(memory.fresh_iterations) == int(fresh.steps)
+    # A matching key, but the last step needed two iterations more than the matrix's
+    # first: formed afresh before the root find.
+    slow = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps + 2, one)
+    solution, _, used, memory = kept._chord_solve(root_finder, guess, data, slow)
+    np.testing.assert_allclose(used, inverse, rtol=0, atol=1e-15)
+    assert int(solution.steps) == int(fresh.steps) and int(memory.formed) == 2
+    # And one that serves is used as it is.
+    good = ChordMemory(jacobian, inverse, key, fresh.steps, fresh.steps, one)
+    solution, _, used, memory = kept._chord_solve(root_finder, guess, data, good)
+    np.testing.assert_array_equal(solution.value, fresh.value)
+    assert int(memory.formed) == 1
