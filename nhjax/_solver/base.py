@@ -167,6 +167,12 @@ class AbstractCountingState(AbstractMethodState):
         return dict(root_find_steps=self.total_steps, max_root_find_steps=self.max_steps)
 
 
+# How closely a kept chord matrix's key must match the step's (relative): a step size
+# t1 - t0 from accumulated times differs from the last one by rounding, and a matrix
+# serves as well for it; the substeps of a composition differ by factors of order one.
+CHORD_KEY_TOLERANCE = 1e-6
+
+
 class ChordMemory(eqx.Module):
     """The chord matrix of the last step and its inverse, kept for the next step
     (`AbstractMethod.reuses_chord_matrix`): `key`, what it was formed for
@@ -374,12 +380,13 @@ class AbstractMethod(diffrax.AbstractSolver):
         (`ChordMemory`) instead of forming them, as implicit Runge--Kutta codes keep
         their simplified-Newton matrix over steps (Hairer & Wanner, *Solving ODEs II*,
         §IV.8). A kept matrix is used while it was formed for the same `chord_key` (the
-        step size, and whatever else it depends on) and the last step took at most one
-        iteration more than the step that formed it; a root find that fails with a
-        kept matrix is repeated with a fresh one. So only the iteration count, not
-        the root (to the root finder's tolerance) or whether a step succeeds, depends
-        on it, and derivatives, which come from the implicit function theorem with the
-        exact Jacobian, not at all. It pays where forming the matrix costs several
+        step size, and whatever else it depends on; to `CHORD_KEY_TOLERANCE`, as step
+        sizes from accumulated times differ by rounding) and the last step took at
+        most one iteration more than the step that formed it; a root find that fails
+        with a kept matrix is repeated with a fresh one. So only the iteration count,
+        not the root (to the root finder's tolerance) or whether a step succeeds,
+        depends on it, and derivatives, which come from the implicit function theorem
+        with the exact Jacobian, not at all. It pays where forming the matrix costs several
         iterations (a metric that depends on $q$, many unknowns), and costs where the
         extra iterations a kept matrix needs are dear against it
         (`benchmarks/chord_reuse.py` measures both). Default: no; the methods that
@@ -570,7 +577,7 @@ class AbstractMethod(diffrax.AbstractSolver):
             return self._chord_root(root_finder, guess, data, jacobian, inverse), jacobian, inverse, None
         key = self.chord_key(data)
         kept = (
-            jnp.all(memory.key == key)
+            jnp.all(jnp.abs(memory.key - key) <= CHORD_KEY_TOLERANCE * jnp.abs(key))
             & (memory.last_iterations <= memory.fresh_iterations + 1)
             & jnp.all(jnp.isfinite(memory.inverse))
         )
