@@ -1,0 +1,101 @@
+"""Keeping the chord matrix from step to step (`reuse_chord_matrix=True`) against forming
+it at every step, for GONZALEZ-R and the energy-preserving collocation, timed in turns
+in one process (`_timing.run_and_time_interleaved`).
+
+Cases: the paper's gearbox, n = 3 quartic and sleigh (GONZALEZ-R, h = 0.1), Euler's disk
+with H from its mass matrix and from its Lagrangian (h = 0.01), the synthetic systems of
+`scaling.py` at n = 16 and 64 (h = 0.05); the collocation of order 4, 6 and 8 on the
+quartic and of order 6 and 8 on the gearbox, at the step sizes where
+`composition.py` finds them cheapest. For each: µs/step (median) both ways and their
+ratio, iterations per step both ways, chord matrices formed per step when kept, and the
+largest difference of the final states and of the energy errors.
+
+Results: benchmarks/results/chord_reuse.json.
+Run: python benchmarks/chord_reuse.py [--repeats 7]
+"""
+
+import jax
+import jax.numpy as jnp
+
+
+jax.config.update("jax_enable_x64", True)
+
+import nhjax as nh  # noqa: E402
+import scaling  # noqa: E402
+from _timing import options, run_and_time_interleaved, write  # noqa: E402
+
+
+def _cases():
+    gearbox, quartic = nh.examples.gearbox(), nh.examples.chaotic_quartic(3)
+    sleigh, disk = nh.examples.chaplygin_sleigh(), nh.examples.rolling_disk_3d()
+    paper = {
+        "gearbox": (gearbox.canonical, gearbox.random_initial_state(jax.random.key(0)), None),
+        "quartic n = 3": (quartic.canonical, quartic.from_adapted(quartic.initial_state(0.7)), None),
+        "sleigh": (sleigh.canonical, sleigh.start("canonical"), sleigh.args),
+    }
+    cases = {}
+    for name, problem in paper.items():
+        cases[f"GONZALEZ-R, {name}"] = (*problem, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep), 0.1, 1000)
+    for name, system in (("mass-matrix H", disk.canonical), ("Lagrangian", disk.canonical_from_lagrangian)):
+        cases[f"GONZALEZ-R, Euler's disk ({name})"] = (
+            system, disk.initial_state(), disk.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep), 0.01, 500
+        )
+    for n, steps in ((16, 100), (64, 20)):
+        cases[f"GONZALEZ-R, synthetic n = {n}"] = (
+            scaling.SYSTEM, scaling.initial_state(n), None, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep),
+            scaling.H, steps,
+        )
+    for name, orders in (("quartic n = 3", ((4, 200), (6, 100), (8, 40))), ("gearbox", ((6, 50), (8, 32)))):
+        for order, steps in orders:
+            cases[f"collocation {order}, {name}"] = (
+                *paper[name],
+                lambda keep, order=order: nh.EnergyPreservingCollocation(order, reuse_chord_matrix=keep),
+                10.0 / steps,
+                steps,
+            )
+    return cases
+
+
+def _measure(system, y0, args, method_of, h, steps, repeats):
+    runs = {
+        label: jax.jit(lambda y, method=method_of(keep): nh.integrate(system, method, y, h, steps, args=args, save_every=steps))
+        for label, keep in (("fresh", False), ("kept", True))
+    }
+    solutions, seconds = run_and_time_interleaved(runs, y0, repeats=repeats)
+    fresh, kept = solutions["fresh"], solutions["kept"]
+    difference = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(fresh.ys), jax.tree.leaves(kept.ys)))
+
+    def energy_error(solution):
+        return float(jnp.max(jnp.abs(solution.energy - solution.energy[0])) / jnp.abs(solution.energy[0]))
+
+    return dict(
+        h=h,
+        steps=steps,
+        fresh_us_per_step=seconds["fresh"] / steps * 1e6,
+        kept_us_per_step=seconds["kept"] / steps * 1e6,
+        kept_over_fresh=seconds["kept"] / seconds["fresh"],
+        fresh_iterations_per_step=float(fresh.stats["root_find_steps"]) / steps,
+        kept_iterations_per_step=float(kept.stats["root_find_steps"]) / steps,
+        kept_matrices_per_step=float(kept.stats["chord_matrices"]) / steps,
+        final_state_difference=difference,
+        energy_errors=dict(fresh=energy_error(fresh), kept=energy_error(kept)),
+    )
+
+
+def main():
+    arguments = options(__doc__, "chord_reuse", repeats=7)
+    results = {}
+    for name, (system, y0, args, method_of, h, steps) in _cases().items():
+        results[name] = _measure(system, y0, args, method_of, h, steps, arguments.repeats)
+        row = results[name]
+        print(
+            f"{name:42s} fresh {row['fresh_us_per_step']:8.1f} µs/step  kept {row['kept_us_per_step']:8.1f}"
+            f"  ratio {row['kept_over_fresh']:.2f}  iterations {row['fresh_iterations_per_step']:.2f} ->"
+            f" {row['kept_iterations_per_step']:.2f}  matrices/step {row['kept_matrices_per_step']:.2f}",
+            flush=True,
+        )
+    write(dict(cases=results, repeats=arguments.repeats), arguments.out)
+
+
+if __name__ == "__main__":
+    main()
