@@ -8,7 +8,8 @@ state of key 0), to t = 10. Runs:
   in canonical coordinates; on the quartic also DiscreteGradient(gonzalez) and its
   compositions on the reduced form (errors measured on (q, p) after mapping back);
 - energy-exact and symmetric in one solve a step: `nhjax.EnergyPreservingCollocation` of
-  order 4, 6 and 8 in canonical coordinates (through the reduced form);
+  order 4, 6 and 8 in canonical coordinates (through the reduced form), with its chord
+  matrix formed at every step and kept from step to step (`reuse_chord_matrix=True`);
 - energy-exact too, not symmetric: Dopri8 with adaptive steps, each step projected onto
   the energy level and the constraint (`nhjax.Projection`), over a sweep of tolerances;
 - Tsit5 at fixed steps, and Dopri8 with adaptive steps (`nhjax.integrate_adaptive`'s
@@ -34,6 +35,7 @@ Run: python benchmarks/composition.py [--repeats 5] [--quick]
 """
 
 import argparse
+import itertools
 import pathlib
 
 import diffrax
@@ -62,6 +64,7 @@ STEP_COUNTS = {
 TSIT5_STEPS = (50, 100, 200, 400, 800, 1600, 3200)
 PROJECTED = "Dopri8 + projection (adaptive)"
 COLLOCATION = "EP-collocation"
+KEPT = " (kept chord matrix)"
 
 
 def _problems():
@@ -165,10 +168,10 @@ def work_precision(repeats: int, quick: bool = False) -> dict:
                 print(f"{problem_name:10s} {name:34s} " + "  ".join(
                     f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
                     for row in runs[name] if not row["failed"]), flush=True)
-        for order in (4, 6, 8):
-            name = f"{COLLOCATION}, order {order}"
-            runs[name] = _sweep(system, nh.EnergyPreservingCollocation(order), y0, thin(STEP_COUNTS[order]),
-                                reference, _identity, repeats, invariants)
+        for order, kept in itertools.product((4, 6, 8), (False, True)):
+            name = f"{COLLOCATION}{KEPT if kept else ''}, order {order}"
+            runs[name] = _sweep(system, nh.EnergyPreservingCollocation(order, reuse_chord_matrix=kept), y0,
+                                thin(STEP_COUNTS[order]), reference, _identity, repeats, invariants)
             exact.append(name)
             print(f"{problem_name:10s} {name:34s} " + "  ".join(
                 f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
