@@ -31,9 +31,10 @@ class Solution(eqx.Module):
         constraint residual is not finite is a failure), and every output of a failed
         trajectory has NaN derivatives.
     - `stats`: `num_steps` (steps taken), `root_find_steps` (root-finder iterations in
-        all), `max_root_find_steps` (most iterations in one step); for an
-        `nhjax.Composition`, also `substep_root_find_steps` and `failed_substep` (see
-        there).
+        all), `max_root_find_steps` (most iterations in one step); for a method
+        that keeps its chord matrix (`reuse_chord_matrix=True`), `chord_matrices`
+        (the matrices formed); for an `nhjax.Composition`, also
+        `substep_root_find_steps` and `failed_substep` (see there).
     - `work`, `dissipated`: the energy the force supplied and the energy the
         dissipation removed from `t0` to each save, shape `(n_saved,)`, so that
         `energy - energy[0] == work - dissipated` (to the method's accuracy). For a
