@@ -4,7 +4,10 @@ Ctrl-C in that time would end the command with a traceback. This module installs
 command's interrupt handler first, chooses XLA's flags for the command
 (`add_xla_flags`), then imports the package (`nhjax._cli.main`)."""
 
+import importlib.metadata
+import json
 import os
+import pathlib
 import signal
 import subprocess
 import sys
@@ -22,10 +25,50 @@ LOOP_EMITTER = "--xla_cpu_use_fusion_emitters=false"
 def xla_knows(flag: str) -> bool:
     """Whether this jaxlib's XLA accepts `flag`: XLA aborts the process on a flag it does
     not know, as versions before the fusion emitters would on `LOOP_EMITTER`, so a child
-    process tries it."""
+    process tries it. The child imports JAX, about a second, so the answer is kept for
+    this jaxlib version in `flag_cache()`: only the first command after an install
+    pays for it. A cache that cannot be read or written only means asking again."""
+    try:
+        key = f"jaxlib {importlib.metadata.version('jaxlib')} {flag}"
+    except importlib.metadata.PackageNotFoundError:
+        key = None
+    known = _read_flag_cache()
+    if key is not None and isinstance(known.get(key), bool):
+        return known[key]
     probe = "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"
     environment = dict(os.environ, XLA_FLAGS=flag, JAX_PLATFORMS="cpu")
-    return subprocess.run([sys.executable, "-c", probe], env=environment, capture_output=True).returncode == 0
+    knows = subprocess.run([sys.executable, "-c", probe], env=environment, capture_output=True).returncode == 0
+    if key is not None:
+        _write_flag_cache({**known, key: knows})
+    return knows
+
+
+def flag_cache() -> pathlib.Path:
+    """Where `xla_knows` keeps its answers: `$XDG_CACHE_HOME/nhjax`, else
+    `~/.cache/nhjax`."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return pathlib.Path(base) / "nhjax" / "xla-flags.json"
+
+
+def _read_flag_cache() -> dict:
+    try:
+        known = json.loads(flag_cache().read_text())
+    except (OSError, ValueError):
+        return {}
+    return known if isinstance(known, dict) else {}
+
+
+def _write_flag_cache(known: dict) -> None:
+    path = flag_cache()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # Written aside and moved into place, so that commands started together never
+        # read half a file.
+        partial = path.with_name(f"{path.name}.{os.getpid()}")
+        partial.write_text(json.dumps(known, indent=1, sort_keys=True))
+        os.replace(partial, path)
+    except OSError:
+        pass
 
 
 def add_xla_flags(wanted: list[str]) -> None:

@@ -1,3 +1,5 @@
+import importlib.metadata
+import json
 import os
 import pathlib
 import signal
@@ -146,10 +148,11 @@ _ARGUMENTS = ["simulate", "gearbox", "--method", "gonzalez-r", "--dt", "0.01", "
 _CHILD = "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
 
 
-def test_the_command_compiles_with_the_loop_emitter_unless_told_otherwise(monkeypatch):
+def test_the_command_compiles_with_the_loop_emitter_unless_told_otherwise(monkeypatch, tmp_path):
     """The command adds XLA:CPU's loop emitter to `XLA_FLAGS` (this jaxlib knows it,
     as the suite's own flags show), keeps the other flags, and leaves a user's choice of
     the emitters alone."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert _nhjax_command.xla_knows(_nhjax_command.LOOP_EMITTER)
     assert not _nhjax_command.xla_knows("--xla_no_such_flag_in_any_xla=true")
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=1")
@@ -161,6 +164,33 @@ def test_the_command_compiles_with_the_loop_emitter_unless_told_otherwise(monkey
     monkeypatch.delenv("XLA_FLAGS")
     _nhjax_command.add_xla_flags([_nhjax_command.LOOP_EMITTER])
     assert os.environ["XLA_FLAGS"] == _nhjax_command.LOOP_EMITTER
+
+
+def test_the_flag_probe_is_asked_once_per_jaxlib_version(monkeypatch, tmp_path):
+    """`xla_knows` remembers each answer for this jaxlib in the user's cache, and asks a
+    child process again where the cache is unreadable."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    children = []
+    run = subprocess.run
+
+    def counted(*arguments, **options):
+        children.append(arguments)
+        return run(*arguments, **options)
+
+    monkeypatch.setattr(_nhjax_command.subprocess, "run", counted)
+    unknown = "--xla_no_such_flag_in_any_xla=true"
+    for _ in range(2):
+        assert _nhjax_command.xla_knows(_nhjax_command.LOOP_EMITTER)
+        assert not _nhjax_command.xla_knows(unknown)
+    assert len(children) == 2
+    cache = _nhjax_command.flag_cache()
+    assert cache.parent.parent == tmp_path
+    saved = json.loads(cache.read_text())
+    version = importlib.metadata.version("jaxlib")
+    assert saved == {f"jaxlib {version} {_nhjax_command.LOOP_EMITTER}": True, f"jaxlib {version} {unknown}": False}
+    cache.write_text("{not json")
+    assert _nhjax_command.xla_knows(_nhjax_command.LOOP_EMITTER)
+    assert len(children) == 3
 
 
 def test_an_interrupt_ends_the_command_cleanly(tmp_path):
