@@ -13,8 +13,9 @@ from nhjax._reproduce._common import fitted_order as fitted_order
 # Every nhjax method, by its name in the package's registry (AVF aside: it differs from
 # GONZALEZ only in its discrete gradient, tested in test_discrete_gradient.py), and
 # GONZALEZ-R with its finite-difference option and with its chord matrix kept from step
-# to step: the shared properties are tested over this one list. GONZALEZ (DiscreteGradient) integrates skew-gradient (adapted)
-# systems, the others NonholonomicSystems in canonical coordinates.
+# to step: the shared properties are tested over this one list. GONZALEZ
+# (DiscreteGradient) integrates skew-gradient (adapted) systems, the others
+# NonholonomicSystems in canonical coordinates.
 METHODS = {
     name: method.solver for name, method in REGISTRY.items() if isinstance(method.solver, nh.AbstractMethod)
 }

@@ -173,6 +173,13 @@ class AbstractCountingState(AbstractMethodState):
 CHORD_KEY_TOLERANCE = 1e-6
 
 
+def step_key(h, dtype=None, signs: Float[Array, " k"] | None = None) -> Float[Array, " c"]:
+    """A `chord_key`: the step size `h` (as `dtype`), and the frame's `signs` where the
+    matrix was formed in a frame."""
+    key = jnp.reshape(lax.stop_gradient(jnp.asarray(h, dtype=dtype)), (1,))
+    return key if signs is None else jnp.concatenate([key, signs.astype(key.dtype)])
+
+
 class ChordMemory(eqx.Module):
     """The chord matrix of the last step and its inverse, kept for the next step
     (`AbstractMethod.reuses_chord_matrix`): `key`, what it was formed for
@@ -395,8 +402,9 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     def chord_key(self, data: Any) -> Float[Array, " c"]:
         """What the chord matrix of a step with `data` depends on besides the point it is
-        formed at (`reuses_chord_matrix`): by default the step size `data.h`."""
-        return jnp.reshape(lax.stop_gradient(jnp.asarray(data.h)), (1,))
+        formed at (`reuses_chord_matrix`): by default the step size `data.h`
+        (`step_key`)."""
+        return step_key(data.h)
 
     def init(self, terms, t0, t1, y0, args) -> MethodState:
         system, _ = self.system_and_step(terms, t0, t1)
@@ -404,11 +412,12 @@ class AbstractMethod(diffrax.AbstractSolver):
         carry = self.initial_carry(system, unledgered(y0), args)
         chord = None
         if self.reuses_chord_matrix() and isinstance(self._root_finder(jax.tree.leaves(y0)[0].dtype), PresetChord):
-            unknowns, key = jax.eval_shape(
-                lambda: (lambda guess, data: (guess, self.chord_key(data)))(
-                    *self.setup(system, t0, t1 - t0, unledgered(y0), args, carry)
-                )
-            )
+
+            def unknowns_and_key():
+                guess, data = self.setup(system, t0, t1 - t0, unledgered(y0), args, carry)
+                return guess, self.chord_key(data)
+
+            unknowns, key = jax.eval_shape(unknowns_and_key)
             size, dtype = unknowns.shape[0], unknowns.dtype
             empty = jnp.full((size, size), jnp.nan, dtype)
             chord = ChordMemory(empty, empty, jnp.full(key.shape, jnp.nan, key.dtype), zero, zero, zero)
@@ -567,14 +576,19 @@ class AbstractMethod(diffrax.AbstractSolver):
             self.root_find_residual, guess, data, inverse, self.root_find_max_steps, floor, self.chord_remainder(data)
         )
 
+    def _fresh_chord_root(self, root_finder, operands):
+        """`_chord_root` with a fresh chord matrix: the solution, the matrix and its
+        inverse."""
+        jacobian, inverse = self._fresh_chord(operands)
+        return self._chord_root(root_finder, *operands, jacobian, inverse), jacobian, inverse
+
     def _chord_solve(self, root_finder, guess, data, memory: ChordMemory | None):
         """The chord iteration of a step (constants only), with a fresh chord matrix or,
         for a method that reuses it (`reuses_chord_matrix`), the kept one where it
         serves: the solution (its iterations counting a repeat with a fresh matrix),
         the matrix and inverse used, and the memory for the next step."""
         if memory is None:
-            jacobian, inverse = self._fresh_chord((guess, data))
-            return self._chord_root(root_finder, guess, data, jacobian, inverse), jacobian, inverse, None
+            return *self._fresh_chord_root(root_finder, (guess, data)), None
         key = self.chord_key(data)
         kept = (
             jnp.all(jnp.abs(memory.key - key) <= CHORD_KEY_TOLERANCE * jnp.abs(key))
@@ -585,13 +599,13 @@ class AbstractMethod(diffrax.AbstractSolver):
         solution = self._chord_root(root_finder, guess, data, jacobian, inverse)
         failed = (solution.result != optx.RESULTS.successful) | ~jnp.isfinite(solution.residual_size)
 
-        def again(operands):
-            guess, data = operands
-            jacobian, inverse = self._fresh_chord(operands)
-            return self._chord_root(root_finder, guess, data, jacobian, inverse), jacobian, inverse
-
         repeated = kept & failed
-        second, jacobian, inverse = rarely(repeated, again, (solution, jacobian, inverse), (guess, data))
+        second, jacobian, inverse = rarely(
+            repeated,
+            lambda operands: self._fresh_chord_root(root_finder, operands),
+            (solution, jacobian, inverse),
+            (guess, data),
+        )
         steps = jnp.where(repeated, solution.steps + second.steps, second.steps)
         solution = ChordSolution(second.value, second.result, steps, second.residual_size)
         fresh = ~kept | repeated

@@ -17,7 +17,7 @@ from .._rare_branch import rarely
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
 from ._collocation_tableau import collocation_tableau, CollocationTableau
-from .base import AbstractMethod, increment_scale, no_gradient, resolution_of
+from .base import AbstractMethod, increment_scale, no_gradient, resolution_of, step_key
 from .chord import chord_inverse, REMAINDER
 
 
@@ -375,10 +375,7 @@ class EnergyPreservingCollocation(AbstractMethod):
     def chord_key(self, data):
         """The step size, and on the reduced form the frame's signs, for which the
         chord matrix holds."""
-        h = jnp.reshape(lax.stop_gradient(jnp.asarray(data.h, dtype=data.x.dtype)), (1,))
-        if isinstance(data.form, ReducedSystem):
-            return jnp.concatenate([h, data.form.signs.astype(data.x.dtype)])
-        return h
+        return step_key(data.h, data.x.dtype, data.form.signs if isinstance(data.form, ReducedSystem) else None)
 
     def chord_remainder(self, data):
         """The chord matrix holds the field's derivative at one point (and, on the

@@ -43,7 +43,7 @@ from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, metric_of, ReducedSystem
 from .._rare_branch import rarely
 from .chord import REMAINDER
-from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient, resolution_of
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient, resolution_of, step_key
 
 
 class _Carry(NamedTuple):
@@ -279,8 +279,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
 
     def chord_key(self, data):
         """The step size and the frame's signs, for which the chord matrix holds."""
-        h = jnp.reshape(lax.stop_gradient(jnp.asarray(data.h, dtype=data.zeta.dtype)), (1,))
-        return jnp.concatenate([h, data.reduced.signs.astype(data.zeta.dtype)])
+        return step_key(data.h, data.zeta.dtype, data.reduced.signs)
 
     def simplified_residual(self, u, data):
         return self.residual(u, data, correction=False)
