@@ -32,6 +32,7 @@ no install of nhjax is needed). `--quick`: batches up to 2 000 and shorter runs,
 test that also runs on a CPU.
 """
 
+import contextlib
 import json
 import os
 import pathlib
@@ -117,7 +118,7 @@ def _throughput(report, batches, steps, single_steps, repeats, device=None):
     """The `throughput` table on `device` (default: the default device); the yardstick
     timed once for each batch."""
     table, yardsticks = {}, {}
-    with jax.default_device(device) if device is not None else _nothing():
+    with jax.default_device(device) if device is not None else contextlib.nullcontext():
         for name, system, method, states in _cases():
             rows = {}
             for batch in batches:
@@ -147,14 +148,6 @@ def _throughput(report, batches, steps, single_steps, repeats, device=None):
                 print(name, batch, rows[str(batch)], flush=True)
             table[name] = rows
     return table
-
-
-class _nothing:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *_):
-        return False
 
 
 def _invariants(single_steps):
@@ -210,7 +203,7 @@ def _gradients(steps, repeats):
 def _lever_child(steps, single_steps, repeats):
     """In a child process: batches 1 and 200 of GONZALEZ-R under this process's
     `XLA_FLAGS`, as one JSON line."""
-    name, system, method, states = _cases()[0]
+    _, system, method, states = _cases()[0]
     us, compile_s, _ = per_step(system, method, _first(states(1)), single_steps, repeats, dt=DT)
     rate, failed = batch_rate(system, method, states(200), steps, repeats, dt=DT)
     print("LEVER " + json.dumps(dict(us_per_step=us, compile_s=compile_s, batch_200_trajectory_steps_per_s=rate,
