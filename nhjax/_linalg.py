@@ -13,6 +13,7 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
+import jax.lax as lax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, Bool, Float
@@ -23,9 +24,21 @@ PRODUCT_LIMIT = 32
 
 
 def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
-    """$a^{-1}b$ for symmetric positive definite `a`, by Gauss--Jordan elimination
+    r"""$a^{-1}b$ for symmetric positive definite `a`, by Gauss--Jordan elimination
     without pivoting (stable for SPD matrices: the pivots are ratios of leading
-    principal minors, all positive)."""
+    principal minors, all positive).
+
+    Differentiated as a linear solve (`jax.lax.custom_linear_solve`):
+    $d(a^{-1}b) = a^{-1}(db - da\,a^{-1}b)$, one more solve with the same matrix,
+    transposed by itself since `a` is symmetric; not by differentiating each step of
+    the elimination, which would grow the traced graph several times over (a metric's
+    inverse inside a Hamiltonian is differentiated twice for a chord matrix)."""
+    return lax.custom_linear_solve(
+        lambda x: a @ x, b, solve=lambda _, rhs: _eliminate_spd(a, rhs), symmetric=True
+    )
+
+
+def _eliminate_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
     n = a.shape[0]
     if n > UNROLL_LIMIT:
         return jsl.cho_solve(jsl.cho_factor(a), b)
