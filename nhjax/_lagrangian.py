@@ -35,7 +35,14 @@ class LegendreHamiltonian(eqx.Module):
     lagrangian: Lagrangian
 
     def mass_matrix(self, q: Float[Array, " n"], args: Any) -> Float[Array, "n n"]:
-        return jax.hessian(self.lagrangian, argnums=1)(q, jnp.zeros_like(q), args)
+        r"""$M(q)$, column by column: $Me_i = \partial L/\partial\dot q(q, e_i)$, exact for
+        $L$ of mechanical type (the only kind this Hamiltonian describes, checked by
+        `is_mechanical`). One reverse pass of $L$, batched over the unit velocities,
+        where the Hessian in $\dot q$ would differentiate twice: derivatives of $H$
+        trace this matrix again, so its order counts twice over."""
+        velocity_gradient = jax.grad(self.lagrangian, argnums=1)
+        units = jnp.eye(q.shape[0], dtype=q.dtype)
+        return jax.vmap(velocity_gradient, in_axes=(None, 0, None), out_axes=1)(q, units, args)
 
     def __call__(self, q: Float[Array, " n"], p: Float[Array, " n"], args: Any) -> Float[Array, ""]:
         return _legendre_transform(self, q, p, args)
