@@ -3,7 +3,8 @@ interleaved (A, B, C, A, B, C, ...) so that the machine's drift falls on all ali
 
 - `GONZALEZ-R`: as shipped (chord matrix with the frame held to first order,
   extrapolated predictor, products with the frame derivative matrix-free);
-- `Euler predictor`: explicit Euler guess at every step;
+- `no predictor`: every step starts from no motion, as the first step of a run does
+  (the chord iteration's first iterate then a linearly implicit Euler step);
 - `jacfwd chord matrix`: the generic `jax.jacfwd` of the simplified residual for the
   chord matrix (what the method used before it had its own);
 - `formed frame derivative`: $J = \partial_q(X^Tp)$ formed at every residual by
@@ -33,8 +34,8 @@ from nhjax._reduced import ReducedSystem  # noqa: E402
 from nhjax._solver.base import AbstractMethod  # noqa: E402
 
 
-class EulerPredictor(nh.GonzalezR):
-    """Hands the next step no velocities, so every step starts from explicit Euler."""
+class NoPredictor(nh.GonzalezR):
+    """Hands the next step no velocities, so every step starts from no motion."""
 
     def complete(self, u, data):
         y1, carry = super().complete(u, data)
@@ -61,7 +62,7 @@ class FormedFrameDerivative(nh.GonzalezR):
 
 VARIANTS = {
     "GONZALEZ-R": nh.GonzalezR(),
-    "Euler predictor": EulerPredictor(),
+    "no predictor": NoPredictor(),
     "jacfwd chord matrix": JacfwdChordMatrix(),
     "formed frame derivative": FormedFrameDerivative(),
 }

@@ -13,11 +13,10 @@ from jaxtyping import Array
 from .._discrete_gradient import Branch, value_difference
 from .._linalg import UNROLL_LIMIT
 from .._nonholonomic import NonholonomicSystem
-from .._rare_branch import rarely
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
 from ._collocation_tableau import collocation_tableau, CollocationTableau
-from .base import AbstractMethod, increment_scale, no_gradient, resolution_of, step_key
+from .base import AbstractMethod, increment_scale, resolution_of, step_key
 from .chord import chord_inverse, REMAINDER
 
 
@@ -131,8 +130,9 @@ class EnergyPreservingCollocation(AbstractMethod):
     predicted midpoint (on the reduced form with the frame held fixed,
     `ReducedSystem.field_jacobian`). The predictor extrapolates the last step's
     collocation polynomial, $K_i \approx \sum_j\ell_j(1 + c_ih/h_{\text{prev}})K_j^{\text{prev}}$,
-    $O(h^s)$ from the root; explicit Euler where there is no such step (the first step, a restart, a
-    change of the frame's signs, a step size more than four times the last).
+    $O(h^s)$ from the root; no motion where there is no such step (the first step, a
+    restart, a change of the frame's signs, a step size more than four times the last),
+    from which the iteration's first iterate is a linearly implicit step.
 
     **Arguments:**
 
@@ -258,14 +258,13 @@ class EnergyPreservingCollocation(AbstractMethod):
         powers = times[:, None] ** jnp.arange(self.stages, dtype=x.dtype)
         extrapolation = powers @ jnp.asarray(tableau.lagrange, dtype=x.dtype).T
         extrapolated = ratio * extrapolation @ carry.increments
-        euler = rarely(
-            ~extrapolates,
-            lambda operands: jnp.broadcast_to(operands[3] * _field(*operands[:3]), extrapolated.shape),
-            lax.stop_gradient(extrapolated),
-            no_gradient((form, x, args, h)),
-        )
+        # Without a last polynomial, no motion: the chord iteration's first iterate from
+        # it is a linearly implicit Runge--Kutta step, as good a start as explicit Euler
+        # for the same one field evaluation per stage, made by the iteration's own
+        # residual rather than by a copy of the field in the step's program.
+        increments = jnp.where(extrapolates, extrapolated, 0.0)
         scale = increment_scale(x)
-        guess = (lax.stop_gradient(euler) / scale).reshape(-1)
+        guess = (lax.stop_gradient(increments) / scale).reshape(-1)
         return guess, _StepData(form, x, h, scale, args, energy, momentum, t)
 
     def residual(self, u, data, branch: Branch = "cond"):
@@ -402,9 +401,3 @@ class EnergyPreservingCollocation(AbstractMethod):
             step=lax.stop_gradient(jnp.asarray(data.h, dtype=x.dtype)),
         )
 
-
-def _field(form, x, args):
-    """$\\Pi(x)\\nabla H(x)$ (the predictor's Euler step)."""
-    if isinstance(form, ReducedSystem):
-        return form.vector_field(x, args)
-    return form.structure(x, args) @ jax.grad(form.hamiltonian)(x, args)

@@ -15,8 +15,7 @@ forming $J$ takes $n$ tangents of it. For $M = I$, $\mathcal{H}$ and its gradien
 no frame at all (`nhjax._reduced.ReducedSystem`), so the Gonzalez correction costs no
 QR. Where $\partial H/\partial p$ does not depend on $q$ (checked on its program),
 the metric is a constant (`nhjax._reduced.metric_of`). Under `vmap`
-the predictor's Euler branch runs only at the steps where some trajectory needs it
-(`nhjax._rare_branch.rarely`), and the chord iteration's loop runs until the
+the chord iteration's loop runs until the
 slowest trajectory has converged (`benchmarks/gonzalez_r.py` times a batch of 200).
 Derivatives of a run add, per step, one
 linearisation of the residual (its Jacobian in the unknowns and its derivative along
@@ -41,9 +40,8 @@ from jaxtyping import Array
 from .._discrete_gradient import Branch, gonzalez_correction
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, metric_of, ReducedSystem
-from .._rare_branch import rarely
 from .chord import REMAINDER
-from .base import AbstractSymmetricSecondOrderMethod, increment_scale, no_gradient, resolution_of, step_key
+from .base import AbstractSymmetricSecondOrderMethod, increment_scale, resolution_of, step_key
 
 
 class _Carry(NamedTuple):
@@ -192,31 +190,26 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         # The predictor: the mean velocity of this step extrapolated linearly from those
         # of the two before, an O(h^2) error in the velocity, so the guess is O(h^3) from
         # the root; otherwise (the first two steps, a restart, a change of signs, in
-        # whose frame the carried rho-velocities mean something else) explicit Euler,
-        # O(h^2). It saves the field evaluation of Euler and some iterations; the root
-        # does not depend on it. A step's mean velocity is the velocity at its
-        # midpoint to O(h^2), and the midpoints of steps of signed sizes h'', h', h are
-        # (h'' + h')/2 and (h' + h)/2 apart: with equal steps the weights are (2, -1);
-        # with the unequal and negative substeps of a composition (`nhjax.Composition`)
-        # they follow the sizes, and where the two earlier midpoints (nearly) coincide,
-        # so that the line through them is ill-determined, Euler is used.
+        # whose frame the carried rho-velocities mean something else) no motion, from
+        # which the chord iteration's first iterate, (I - h/2 F)^{-1} h f(zeta), is a
+        # linearly implicit Euler step: as good a start as an explicit Euler guess
+        # would be, for the same one field evaluation, made by the iteration's own
+        # residual rather than by a second copy of the field in the step's program. The
+        # root does not depend on the guess. A step's mean velocity is the velocity at
+        # its midpoint to O(h^2), and the midpoints of steps of signed sizes h'', h', h
+        # are (h'' + h')/2 and (h' + h)/2 apart: with equal steps the weights are
+        # (2, -1); with the unequal and negative substeps of a composition
+        # (`nhjax.Composition`) they follow the sizes, and where the two earlier
+        # midpoints (nearly) coincide, so that the line through them is ill-determined,
+        # the step starts from no motion. The guess carries no derivatives (the root's
+        # come from the implicit function theorem).
         reach = (h + carry.last_step) / (carry.last_step + carry.earlier_step)
         extrapolates = (
             continues & jnp.all(jnp.isfinite(carry.earlier_velocity)) & (jnp.abs(reach) <= 4)
         )
-        # The guess carries no derivatives (the root's come from the implicit function
-        # theorem), so neither branch is differentiated: cut before the branch, so that
-        # derivative programs do not carry the Euler branch's linearisation. Under vmap
-        # the batch evaluates the Euler branch only at the steps where some trajectory
-        # needs it (`rarely`), not at every step.
         extrapolated = carry.last_velocity + reach * (carry.last_velocity - carry.earlier_velocity)
+        velocity = lax.stop_gradient(jnp.where(extrapolates, extrapolated, 0.0))
         midpoint_time = t + 0.5 * h
-        velocity = rarely(
-            ~extrapolates,
-            lambda operands: operands[0].vector_field(*operands[1:]),
-            lax.stop_gradient(extrapolated),
-            no_gradient((reduced, zeta, args, midpoint_time)),
-        )
         scale = increment_scale(zeta)
         guess = h * velocity / scale
         previous = jnp.where(continues, carry.last_velocity, jnp.nan)
