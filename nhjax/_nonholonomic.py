@@ -235,7 +235,12 @@ class NonholonomicSystem(AbstractSystem):
         return self.hamiltonian(*y, args)
 
     def observables(self, y, args):
-        return {"energy": self.energy(y, args), "constraint": self.constraint_residual(y, args)}
+        r"""The energy and the constraint residual $A(q)\,\partial H/\partial p$, from
+        one evaluation of $H$ and its gradient in $p$ (a save's program traces $H$
+        once, not once for each)."""
+        q, p = y
+        energy, velocity = jax.value_and_grad(self.hamiltonian, argnums=1)(q, p, args)
+        return {"energy": energy, "constraint": self.constraints(q, args) @ velocity}
 
     def project_momentum(self, q, p, args=None) -> Float[Array, " n"]:
         r"""The momentum closest to `p` in the kinetic-energy norm that satisfies the
@@ -352,15 +357,14 @@ class NonholonomicSystem(AbstractSystem):
         q, p = y0
         finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(p))
         a = self.constraints(q, args)
-        v = self.velocity(q, p, args)
+        energy, (grad_q, v) = jax.value_and_grad(self.hamiltonian, argnums=(0, 1))(q, p, args)
         violation = jnp.max(jnp.abs(a @ v))
         satisfied = violation <= _tolerance(q.dtype, jnp.max(jnp.abs(a)) * jnp.max(jnp.abs(v)))
-        grad_q, grad_p = jax.grad(self.hamiltonian, argnums=(0, 1))(q, p, args)
         dissipation_finite, dissipation = dissipation_at_start(self.dissipation, (q, p), args)
         evaluations_finite = (
-            jnp.isfinite(self.hamiltonian(q, p, args))
+            jnp.isfinite(energy)
             & jnp.all(jnp.isfinite(grad_q))
-            & jnp.all(jnp.isfinite(grad_p))
+            & jnp.all(jnp.isfinite(v))
             & jnp.all(jnp.isfinite(a))
             & dissipation_finite
         )
@@ -384,7 +388,11 @@ class NonholonomicSystem(AbstractSystem):
 
     def _is_mechanical(self, q, p, args):
         """$H(q, u) = H(q, 0) + \\tfrac12 u^T K u$ along probes, $\\partial_p H(q, 0) = 0$
-        and $K$ positive definite."""
+        and $K$ positive definite. For a system given by its Lagrangian, what
+        `_lagrangian_result` checks of $L$ implies it (the transform of a mechanical
+        $L$ with $M$ positive definite is $\\tfrac12p^TM^{-1}p + V$): not traced twice."""
+        if isinstance(self.hamiltonian, LegendreHamiltonian):
+            return jnp.asarray(True)
         return is_quadratic_form(
             lambda u: self.hamiltonian(q, u, args), self.inverse_metric(q, args), p, _tolerance
         )
