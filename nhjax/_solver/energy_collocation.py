@@ -259,9 +259,9 @@ class EnergyPreservingCollocation(AbstractMethod):
         extrapolation = powers @ jnp.asarray(tableau.lagrange, dtype=x.dtype).T
         extrapolated = ratio * extrapolation @ carry.increments
         # Without a last polynomial, no motion: the chord iteration's first iterate from
-        # it is a linearly implicit Runge--Kutta step, as good a start as explicit Euler
-        # for the same one field evaluation per stage, made by the iteration's own
-        # residual rather than by a copy of the field in the step's program.
+        # it is a linearly implicit Runge--Kutta step, which costs about what an
+        # explicit Euler guess would (as for GONZALEZ-R), its field evaluations the
+        # iteration's own residual, not a copy of the field in the step's program.
         increments = jnp.where(extrapolates, extrapolated, 0.0)
         scale = increment_scale(x)
         guess = (lax.stop_gradient(increments) / scale).reshape(-1)
