@@ -122,10 +122,6 @@ class ReducedPoint(NamedTuple):
         normal = along_q + self.contracted_transpose_times(along_rho)
         return jnp.concatenate([moved, self.contracted_times(moved) - self.frame.transpose_times(normal)])
 
-    def field(self) -> Float[Array, " N"]:
-        r"""$\Pi(\zeta)\nabla\mathcal{H}(\zeta)$."""
-        return self.structure_times(self.gradient)
-
 
 def split_reduced(zeta, signs):
     """$(q, \\rho)$ from $\\zeta$ of size $n + m = 2n - k$."""
@@ -400,12 +396,6 @@ class ReducedSystem(eqx.Module):
         q, p = self.from_reduced(zeta, args)
         along_frame = self.frame(q, args).transpose_times(self.system.force(t, q, p, args))
         return jnp.concatenate([jnp.zeros_like(q), along_frame])
-
-    def vector_field(self, zeta, args, t=0.0) -> Float[Array, " N"]:
-        r"""$\dot\zeta = \Pi(\zeta)\nabla\mathcal{H}(\zeta)$, plus the applied force in the
-        frame (`with_applied_force`, at time `t`) where the system has one."""
-        point = self.at(zeta, args)
-        return self.with_applied_force(t, zeta, point, point.gradient, point.field(), args)[0]
 
     def with_applied_force(
         self, t, zeta, point: ReducedPoint, gradient: Float[Array, " N"], field: Float[Array, " N"], args
