@@ -141,7 +141,7 @@ def _reflected_vector(v, w):
 
 
 def _reflect(x, vectors, reflect, reverse: bool):
-    """$H_1\cdots H_kx$ (`reverse`: the last reflection first) or $H_k\cdots H_1x$ by
+    r"""$H_1\cdots H_kx$ (`reverse`: the last reflection first) or $H_k\cdots H_1x$ by
     `reflect`."""
     if vectors.shape[0] > UNROLLED_REFLECTIONS:
         return lax.scan(lambda x, w: (reflect(x, w), None), x, vectors, reverse=reverse)[0]

@@ -12,7 +12,7 @@ different system, so `mechanical_defect` checks the type at the initial state
 """
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -20,6 +20,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ._linalg import is_quadratic_form, solve_spd
+from ._user_function import traced_once
 
 
 Lagrangian = Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, ""]]
@@ -32,7 +33,8 @@ class LegendreHamiltonian(eqx.Module):
     derivatives are first derivatives of $L$ at the velocity $M^{-1}p$
     (`_legendre_transform_jvp`), not autodiff through $M$ and the solve."""
 
-    lagrangian: Lagrangian
+    owns_tracing: ClassVar[bool] = True
+    lagrangian: Lagrangian = eqx.field(converter=traced_once)
 
     def mass_matrix(self, q: Float[Array, " n"], args: Any) -> Float[Array, "n n"]:
         r"""$M(q)$, column by column: $Me_i = \partial L/\partial\dot q(q, e_i)$, exact for
@@ -45,7 +47,7 @@ class LegendreHamiltonian(eqx.Module):
         return jax.vmap(velocity_gradient, in_axes=(None, 0, None), out_axes=1)(q, units, args)
 
     def __call__(self, q: Float[Array, " n"], p: Float[Array, " n"], args: Any) -> Float[Array, ""]:
-        return _legendre_transform(self, q, p, args)
+        return eqx.filter_jit(_legendre_transform)(self, q, p, args)
 
     def velocity_and_value(self, q, p, args) -> tuple[Float[Array, " n"], Float[Array, ""]]:
         r"""$\dot q = M(q)^{-1}p$ and $H(q, p)$."""

@@ -7,7 +7,7 @@ $m = n - k$.
 """
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -19,6 +19,7 @@ from ._linalg import is_quadratic_form, solve_spd
 from ._householder import HouseholderFrame, householder_frame_operator, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
 from ._reduced import Derivative, ReducedSystem
+from ._user_function import traced_once
 from ._system import (
     AbstractSystem,
     check_dissipation_and_force,
@@ -43,7 +44,8 @@ class _InVelocities(eqx.Module):
     given in velocities (`NonholonomicSystem.from_lagrangian`), called in canonical
     coordinates with $\dot q = \partial H/\partial p$."""
 
-    function: Callable
+    owns_tracing: ClassVar[bool] = True
+    function: Callable = eqx.field(converter=traced_once)
     hamiltonian: LegendreHamiltonian
 
     def __call__(self, *arguments):
@@ -89,10 +91,18 @@ class NonholonomicSystem(AbstractSystem):
     A system given by its Lagrangian: `NonholonomicSystem.from_lagrangian`.
     """
 
-    hamiltonian: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, ""]]
-    constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]]
-    dissipation: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, "n n"]] | None = None
-    force: Callable[[Any, Float[Array, " n"], Float[Array, " n"], Any], Float[Array, " n"]] | None = None
+    # Each called through `equinox.filter_jit`, so that a step's many evaluations and
+    # derivatives of them trace the user's code once (`nhjax._user_function`).
+    hamiltonian: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, ""]] = eqx.field(
+        converter=traced_once
+    )
+    constraints: Callable[[Float[Array, " n"], Any], Float[Array, "k n"]] = eqx.field(converter=traced_once)
+    dissipation: Callable[[Float[Array, " n"], Float[Array, " n"], Any], Float[Array, "n n"]] | None = eqx.field(
+        default=None, converter=traced_once
+    )
+    force: Callable[[Any, Float[Array, " n"], Float[Array, " n"], Any], Float[Array, " n"]] | None = eqx.field(
+        default=None, converter=traced_once
+    )
 
     @classmethod
     def from_lagrangian(

@@ -19,6 +19,7 @@ from jaxtyping import Array, Float
 
 from ._ledger import Ledgered
 from ._results import first_failure, RESULTS
+from ._user_function import traced_once
 
 
 class AbstractSystem(diffrax.AbstractTerm):
@@ -173,10 +174,15 @@ class SkewGradientSystem(AbstractSystem):
     $R$ (symmetric positive semidefinite to `100 eps (1 + max|R|)`).
     """
 
-    hamiltonian: Callable[[Float[Array, " N"], Any], Float[Array, ""]]
-    structure: Callable[[Float[Array, " N"], Any], Float[Array, "N N"]]
-    dissipation: Callable[[Float[Array, " N"], Any], Float[Array, "N N"]] | None = None
-    force: Callable[[Any, Float[Array, " N"], Any], Float[Array, " N"]] | None = None
+    # Called through `equinox.filter_jit`, traced once each (`nhjax._user_function`).
+    hamiltonian: Callable[[Float[Array, " N"], Any], Float[Array, ""]] = eqx.field(converter=traced_once)
+    structure: Callable[[Float[Array, " N"], Any], Float[Array, "N N"]] = eqx.field(converter=traced_once)
+    dissipation: Callable[[Float[Array, " N"], Any], Float[Array, "N N"]] | None = eqx.field(
+        default=None, converter=traced_once
+    )
+    force: Callable[[Any, Float[Array, " N"], Any], Float[Array, " N"]] | None = eqx.field(
+        default=None, converter=traced_once
+    )
 
     def gradient(self, x: Float[Array, " N"], args: Any) -> Float[Array, " N"]:
         return jax.grad(self.hamiltonian)(x, args)

@@ -1,0 +1,40 @@
+r"""A system's functions ($H$, $A$, $D$, $F$, $L$), traced once per program.
+
+A step of an nhjax method evaluates $H$ and $A$ at many points and differentiates them
+in several ways (the velocity, the force, products with the metric, the frame and its
+linearisation, the Gonzalez correction, the chord matrix): GONZALEZ-R's program for
+Euler's disk calls its $H$ 33 times. Called as plain Python, each call traces the
+user's code again, and for a sympy-derived $H$ of hundreds of operations that tracing
+was most of the time a run spent before XLA saw it. Called through
+`equinox.filter_jit`, the body is traced once per shape and static arguments, and each
+further call, and each derivative of the same kind, reuses that trace: JAX caches a
+traced function, and its forward, transposed and batched forms, by the function. XLA
+inlines the calls, so the compiled program, and what it computes, are those of the
+plain calls.
+"""
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+
+
+class UserFunction(eqx.Module):
+    """`function`, called through `equinox.filter_jit`: array arguments are traced,
+    everything else (Python numbers, strings in `args`) is static, as it is for
+    `nhjax.integrate` itself. Equal for equal functions, so two systems built from the
+    same functions share compiled programs."""
+
+    function: Callable
+
+    def __call__(self, *arguments: Any) -> Any:
+        return eqx.filter_jit(self.function)(*arguments)
+
+
+def traced_once(function: Callable | None) -> Callable | None:
+    """`function` as a `UserFunction`; `None`, and what already traces its own body
+    once (a `UserFunction`, or a module that wraps its own functions: `owns_tracing`),
+    unchanged."""
+    if function is None or isinstance(function, UserFunction) or getattr(function, "owns_tracing", False):
+        return function
+    return UserFunction(function)
