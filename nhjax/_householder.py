@@ -20,7 +20,10 @@ product instead of $O(nmk)$ for $X$), and the derivative of such a product is a
 derivative of $k$ reflections of one vector.
 """
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
@@ -63,6 +66,10 @@ def _reflection(r, j, given_sign):
     return r, (w, jnp.sqrt(jnp.maximum(length_sq, 0.0) / 2), norm, sign)
 
 
+# Jitted, as `_reflect` is: a step factorises at several points and differentiates the
+# factorisations in several ways, and JAX then traces the body once per shape and
+# reuses the trace (and its derivatives) at every call (`nhjax._user_function`).
+@jax.jit
 def _reflectors(a_t, signs):
     r"""The unit Householder vectors (as rows, zero above their pivot), the pivots
     $|\tilde w_j|/\sqrt2$, R's diagonal magnitudes |x_j|, and the signs used."""
@@ -140,6 +147,7 @@ def _reflected_vector(v, w):
     return v - 2 * w * (w @ v)
 
 
+@functools.partial(jax.jit, static_argnames=("reflect", "reverse"))
 def _reflect(x, vectors, reflect, reverse: bool):
     r"""$H_1\cdots H_kx$ (`reverse`: the last reflection first) or $H_k\cdots H_1x$ by
     `reflect`."""

@@ -9,6 +9,7 @@ differentiable like any other `jax.numpy` code. Above `UNROLL_LIMIT` the LAPACK 
 are used.
 """
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
@@ -38,6 +39,9 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
     )
 
 
+# The eliminations are jitted: traced once per shape however often a step calls them
+# (`nhjax._user_function` says why that counts).
+@jax.jit
 def _eliminate_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
     n = a.shape[0]
     if n > UNROLL_LIMIT:
@@ -51,6 +55,7 @@ def _eliminate_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Arr
     return solution[:, 0] if vector else solution
 
 
+@functools.partial(jax.jit, static_argnames="pivoting")
 def inverse(a: Float[Array, "n n"], pivoting: bool = True) -> Float[Array, "n n"]:
     """$a^{-1}$ by Gauss--Jordan elimination, with partial pivoting (rows swapped by a
     gather per column), for a nonsingular `a`; a singular one gives non-finite entries.
