@@ -26,6 +26,12 @@ def options(description: str, result: str, **defaults) -> argparse.Namespace:
     return parser.parse_args()
 
 
+# XLA:CPU's loop emitter in place of its default MLIR fusion emitters, for one
+# compilation: what the `nhjax` command and the test suite set for their processes by
+# `XLA_FLAGS`, and what a user may pass to `jax.jit(..., compiler_options=...)`.
+LOOP_EMITTER = {"xla_cpu_use_fusion_emitters": False}
+
+
 def timed(function, *arguments) -> float:
     """Seconds for `function(*arguments)`, waiting for JAX's asynchronous dispatch."""
     start = time.perf_counter()

@@ -18,7 +18,10 @@ and `forward-mode-diffrax` (`diffrax.ForwardMode()`). Each measurement runs in i
 process, so that its peak resident memory (`ru_maxrss`) is its own; the peak after
 compilation is recorded too, so that what the run itself adds is visible. A
 derivative's time ratio to the forward run comes from its own process, the two timed in
-turn after the memory is recorded.
+turn after the memory is recorded. Compile time is tracing and lowering
+(`trace_and_lower_s`) plus XLA's compilation, with its default emitters (`compile_s`)
+and, of the same lowered program after the memory figures, with its loop emitter
+(`loop_emitter_compile_s`; the README says how to choose it).
 
 Run: python benchmarks/gradients.py [--steps N ...] [--repeats R] [--systems NAME ...]
 Medians over repeats; results go to benchmarks/results/gradients.json.
@@ -30,6 +33,7 @@ import pathlib
 import resource
 import subprocess
 import sys
+import time
 
 
 _MODES = (
@@ -83,7 +87,7 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
-    from _timing import run_and_time, run_and_time_interleaved, timed
+    from _timing import LOOP_EMITTER, run_and_time, run_and_time_interleaved, timed
 
     system, y0, dt, args = _system(system_name)
     # Each mode: the adjoint (None: nhjax's default) and what is taken of the loss.
@@ -105,7 +109,10 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
         return loss
 
     function = jax.jit(transform(loss))
-    compile_s = timed(lambda y: function.lower(y).compile(), y0)
+    start = time.perf_counter()
+    lowered = function.lower(y0)
+    trace_and_lower_s = time.perf_counter() - start
+    compile_s = trace_and_lower_s + timed(lowered.compile)
     compiled_peak = _peak_mib()
     value, seconds = run_and_time(function, y0, repeats=repeats)
     finite = all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(value))
@@ -121,6 +128,9 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
         # derivative, so that the machine's drift falls on both alike.
         _, times = run_and_time_interleaved(dict(derivative=function, forward=jax.jit(loss)), y0, repeats=repeats)
         result["time_ratio_to_forward"] = times["derivative"] / times["forward"]
+    # After the memory figures: the same program compiled with XLA:CPU's loop emitter.
+    result["trace_and_lower_s"] = trace_and_lower_s
+    result["loop_emitter_compile_s"] = trace_and_lower_s + timed(lambda: lowered.compile(compiler_options=LOOP_EMITTER))
     return result
 
 

@@ -13,7 +13,8 @@ of h = 0.05 from a fixed state on the constraint; the number of steps falls with
 (`_steps`) so that the slowest runs stay within minutes.
 
 For each n and method: median µs/step (`--repeats` timed runs after a warm-up),
-root-finder iterations per step, compile seconds, and the process's peak resident
+root-finder iterations per step, seconds to trace, lower and compile (with XLA's default
+emitters, and with its loop emitter, `LOOP_EMITTER`), and the process's peak resident
 memory after the case (`ru_maxrss`, a high-water mark: it only grows). The yardstick
 solves y' = y + h f((y + y')/2), f = (p, -grad V(q)) of the same V, by three Newton
 iterations a step with a dense Jacobian (`jax.jacfwd`, `jnp.linalg.solve`). The fitted
@@ -55,7 +56,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import run_and_time, timed, write  # noqa: E402
+from _timing import LOOP_EMITTER, run_and_time, timed, write  # noqa: E402
 from nhjax._methods import METHODS  # noqa: E402
 
 
@@ -115,9 +116,17 @@ def _peak_mib():
 
 
 def _case(run, argument, repeats, steps):
-    compile_s = timed(lambda a: run.lower(a).compile(), argument)
+    """µs/step, and the seconds before a first run: tracing and lowering, then XLA's
+    compilation with its default emitters (`compile_s` is their sum) and, of the same
+    lowered program, with the loop emitter (`loop_emitter_compile_s`, the same sum)."""
+    start = time.perf_counter()
+    lowered = run.lower(argument)
+    lower_s = time.perf_counter() - start
+    compile_s = lower_s + timed(lowered.compile)
+    loop_emitter_compile_s = lower_s + timed(lambda: lowered.compile(compiler_options=LOOP_EMITTER))
     output, seconds = run_and_time(run, argument, repeats=repeats)
-    return output, dict(us_per_step=seconds / steps * 1e6, compile_s=compile_s, peak_rss_mib=_peak_mib())
+    return output, dict(us_per_step=seconds / steps * 1e6, compile_s=compile_s, trace_and_lower_s=lower_s,
+                        loop_emitter_compile_s=loop_emitter_compile_s, peak_rss_mib=_peak_mib())
 
 
 def _method_case(system, solver, y0, h, steps, repeats, args=None):
@@ -163,7 +172,11 @@ def main():
         table[n] = row
         print(
             f"n = {n:3d}, k = {n // 4:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
-            + "; ".join(f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s)" for name in methods),
+            + "; ".join(
+                f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s, "
+                f"{row[name]['loop_emitter_compile_s']:.1f} s with the loop emitter)"
+                for name in methods
+            ),
             flush=True,
         )
 
@@ -202,7 +215,11 @@ def _disk(methods, repeats):
         results[form] = row
         print(
             f"3D rolling disk, {form}: "
-            + "; ".join(f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s)" for name in methods),
+            + "; ".join(
+                f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s, "
+                f"{row[name]['loop_emitter_compile_s']:.1f} s with the loop emitter)"
+                for name in methods
+            ),
             flush=True,
         )
     return results

@@ -20,15 +20,14 @@ import equinox as eqx
 
 
 class UserFunction(eqx.Module):
-    """`function`, called through `equinox.filter_jit`: array arguments are traced,
-    everything else (Python numbers, strings in `args`) is static, as it is for
-    `nhjax.integrate` itself. Equal for equal functions, so two systems built from the
-    same functions share compiled programs."""
+    """`function`, called through `equinox.filter_jit` (array leaves of the arguments
+    traced, the other leaves static). Equal for equal functions, so two systems built
+    from the same functions share compiled programs."""
 
     function: Callable
 
-    def __call__(self, *arguments: Any) -> Any:
-        return eqx.filter_jit(self.function)(*arguments)
+    def __call__(self, *arguments: Any, **keywords: Any) -> Any:
+        return eqx.filter_jit(self.function)(*arguments, **keywords)
 
 
 def traced_once(function: Callable | None) -> Callable | None:
