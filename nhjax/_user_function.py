@@ -4,8 +4,8 @@ A step of an nhjax method evaluates $H$ and $A$ at many points and differentiate
 in several ways (the velocity, the force, products with the metric, the frame and its
 linearisation, the Gonzalez correction, the chord matrix): GONZALEZ-R's program for
 Euler's disk calls its $H$ 33 times. Called as plain Python, each call traces the
-user's code again, and for a sympy-derived $H$ of hundreds of operations that tracing
-was most of the time a run spent before XLA saw it. Called through
+user's code again: for the disk's $H$ from its mass matrix, tracing $H$ (and the
+solve inside it) was about half of the time the run's trace took. Called through
 `equinox.filter_jit`, the body is traced once per shape and static arguments, and each
 further call, and each derivative of the same kind, reuses that trace: JAX caches a
 traced function, and its forward, transposed and batched forms, by the function. XLA

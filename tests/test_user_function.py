@@ -37,7 +37,7 @@ def test_a_run_traces_the_users_functions_a_few_times_not_once_per_call():
     assert 1 <= calls["constraints"] <= 4, calls
 
 
-def test_systems_of_the_same_functions_are_equal_and_share_a_compiled_run():
+def test_systems_of_the_same_functions_are_equal_and_not_wrapped_twice():
     canonical = SLEIGH.canonical
     a = nh.NonholonomicSystem(canonical.hamiltonian, canonical.constraints)
     b = nh.NonholonomicSystem(canonical.hamiltonian, canonical.constraints)
