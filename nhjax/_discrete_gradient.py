@@ -90,37 +90,40 @@ def avf(
     return weights @ grads
 
 
-def _third_directional_derivative(f, x, gradient, direction, args):
-    r"""$D^3 f(x)[u, u, u]$ for $u$ = `direction`, given `gradient` $= \nabla f(x)$:
-    the central second difference of the directional derivative
-    $g(s) = Df(x + s\,Sv)[Sv]$ along $Sv$, $v = S^{-1}u/|S^{-1}u|$,
-    $S = \mathrm{diag}(1 + |x_i|)$, at the step $\varepsilon = \epsilon^{1/4}$:
-    $D^3f(x)[u, u, u] \approx |S^{-1}u|^3\,(g(\varepsilon) - 2g(0) + g(-\varepsilon))
-    / \varepsilon^2$, with $g(0) = \nabla f(x)^T Sv$.
+def _third_directional_derivative(f, x, direction, args):
+    r"""$D^3 f(x)[u, u, u]$ for $u$ = `direction`: the central third difference of the
+    values $\phi(s) = f(x + s\,Sv)$ along $Sv$, $v = S^{-1}u/|S^{-1}u|$,
+    $S = \mathrm{diag}(1 + |x_i|)$, at the step $\varepsilon = \epsilon^{1/5}$:
+    $$D^3f(x)[u, u, u] \approx |S^{-1}u|^3\,
+      \frac{\phi(2\varepsilon) - 2\phi(\varepsilon) + 2\phi(-\varepsilon) - \phi(-2\varepsilon)}
+           {2\varepsilon^3}.$$
 
-    Its relative error, $\varepsilon^2/12$ from truncation and $\epsilon/\varepsilon^2$
-    from rounding, is about $\sqrt\epsilon$. It gives only derivatives (of the
-    correction term below the switch, `gonzalez_correction`), never values, so it
-    leaves (discGradEn) as it is. Nested forward-mode
-    autodiff would be exact, but the derivatives of the step's root (implicit function
-    theorem) would then need fourth derivatives of $f$: for GONZALEZ-R, through the QR
-    factorisation, a graph that takes a minute to compile. The difference form needs
-    only first derivatives, and second ones for gradients.
+    It gives only derivatives (of the correction term below the switch,
+    `gonzalez_correction`), never values, so it leaves (discGradEn) as it is. Its
+    derivative in $x$, $u$ and the arguments is the same difference of first
+    derivatives of $f$, in error by $\varepsilon^2|D^6f|/4$ from truncation and
+    $3\epsilon|Df|/\varepsilon^3$ from rounding, about $10^{-6}$ of $|D^4f|$ (and
+    $3D^3f[u, u, \cdot]$, its derivative in $u$, to $\varepsilon^2|D^5f|/4$): the
+    correction term it multiplies by $|\delta|\delta/24$ carries it into the step's
+    Jacobian below $10^{-10}$. Nested autodiff would be exact, but the derivatives of the
+    step's root (implicit function theorem) would then need fourth derivatives of $f$,
+    and a difference of directional derivatives second ones: for GONZALEZ-R both go
+    through the QR factorisation, in every derivative program, where they were a third
+    of the sleigh's reverse-mode run and of its compile time (`benchmarks/gradients.py`)
+    though the branch runs only for nearly equal points. Values need no derivative of
+    $f$ at all, and their derivatives first ones.
     """
     scale = jax.lax.stop_gradient(1.0 + jnp.abs(x))
     scaled = direction / scale
     length = safe_norm(scaled)
     unit = scaled / jnp.where(length == 0, 1.0, length)
-    step = float(jnp.finfo(x.dtype).eps) ** 0.25
+    step = float(jnp.finfo(x.dtype).eps) ** 0.2
     along = scale * unit
-
-    def slope(offset):
-        return jax.jvp(lambda z: f(z, args), (x + offset * along,), (along,))[1]
-
-    # One traced slope for both offsets: half the program, under every derivative.
-    forward, backward = jax.vmap(slope)(jnp.array([step, -step], dtype=x.dtype))
-    second_difference = forward - 2.0 * (gradient @ along) + backward
-    return second_difference / step**2 * length**3
+    # One traced f for the four offsets.
+    offsets = step * jnp.array([2.0, 1.0, -1.0, -2.0], dtype=x.dtype)
+    values = jax.vmap(lambda offset: f(x + offset * along, args))(offsets)
+    third_difference = values @ jnp.array([1.0, -2.0, 2.0, -1.0], dtype=x.dtype)
+    return third_difference / (2.0 * step**3) * length**3
 
 
 def gonzalez(
@@ -236,7 +239,8 @@ def _validated_difference(operands):
     |f(x')|)$; the printed one where it does not, which is where the quadrature's
     truncation is above rounding (the switch of `_is_near` assumes derivatives of
     size 1 in units of $1 + |x_i|$, which fails for a function periodic in a coordinate
-    far from the origin, such as an angle wound up over a long run)."""
+    far from the origin, such as an angle wound up over a long run), or where that
+    rounding estimate is too low (terms of $f$ that nearly cancel)."""
     gradient, x, x1, args, printed, rounding = operands
     difference = segment_difference(gradient, x, x1, args)
     return jnp.where(jnp.abs(difference - printed) <= _AGREEMENT * rounding, difference, printed)
@@ -300,15 +304,17 @@ def gonzalez_correction(
 
     `branch`: `"cond"` (differentiable) or `"rarely"` (values only,
     `nhjax._rare_branch`). With `"cond"` and `taylor=True` ($g$ must
-    then be $\nabla f(\bar x)$), where the quadrature is taken the correction's
+    then be $\nabla f(\bar x)$), for nearly equal points the correction's
     derivatives are those of its Taylor expansion about $\bar x$,
     $\tfrac{1}{24}D^3f(\bar x)[\hat\delta, \hat\delta, \hat\delta]|\delta|\delta$
-    (`_third_directional_derivative`), its value the quadrature's: the quadrature's own
-    derivative forms the coefficient $(D - g^T\delta)/|\delta|^2$ from gradients
-    $|\delta|$ apart, an error of $\epsilon|\nabla f|/|\delta|$ in the discrete
-    gradient's Jacobian ($10^{-6}$ at $|\delta| = 10^{-10}$). With `taylor=False` (an
-    approximate $g$, GONZALEZ-R with finite differences) the derivatives are the
-    selected form's own.
+    (`_third_directional_derivative`), its value the selected difference's: the
+    quadrature's own derivative forms the coefficient $(D - g^T\delta)/|\delta|^2$
+    from gradients $|\delta|$ apart, an error of $\epsilon|\nabla f|/|\delta|$ in the
+    discrete gradient's Jacobian ($10^{-6}$ at $|\delta| = 10^{-10}$), and the values'
+    difference, where it is selected, from values whose rounding is divided by
+    $|\delta|^2$. Below the switch the expansion's truncation is the smaller error,
+    by the choice of $\tau$. With `taylor=False` (an approximate $g$, GONZALEZ-R with
+    finite differences) the derivatives are the selected form's own.
     """
     delta = x1 - x
     squared_length = delta @ delta
@@ -323,16 +329,14 @@ def gonzalez_correction(
         return gradient + correction(rarely(near, _validated_difference, printed, operands))
 
     def near_correction():
-        difference = _validated_difference(operands)
-        value = correction(difference)
+        value = correction(_validated_difference(operands))
         if not taylor:
             return value
         length = safe_norm(delta)
         direction = delta / jnp.where(length == 0, 1.0, length)
-        third = _third_directional_derivative(f, 0.5 * (x + x1), gradient, direction, args)
+        third = _third_directional_derivative(f, 0.5 * (x + x1), direction, args)
         expansion = (third * length / 24.0) * delta
-        quadrature_taken = difference != printed
-        return jnp.where(quadrature_taken, expansion + jax.lax.stop_gradient(value - expansion), value)
+        return expansion + jax.lax.stop_gradient(value - expansion)
 
     return gradient + jax.lax.cond(near, near_correction, lambda: correction(printed))
 

@@ -145,6 +145,21 @@ def test_gonzalez_at_nearly_equal_points_keeps_the_energy_condition_and_accurate
     assert abs(float(defect)) <= 4 * rounding
 
 
+def test_gonzalez_derivative_at_nearly_equal_points_where_the_values_difference_is_taken():
+    """f = a sin(x0) + b sin(x0) + x1^2/2 with a = 1e3, b = 1 - 1e3: |f| is of size 1
+    but its terms 1e3, so the values' difference is rounded far beyond eps |f| and the
+    quadrature, which does not agree with it to that estimate, is not taken. The value
+    is then the printed one, but the derivative must still be Hess/2 (that of the
+    Taylor expansion), not the printed formula's, whose coefficient divides that
+    rounding by |x' - x|^2 = 1e-18."""
+    f = lambda x, args: args[0] * jnp.sin(x[0]) + args[1] * jnp.sin(x[0]) + 0.5 * x[1] ** 2  # noqa: E731
+    args = (jnp.array(1e3), jnp.array(1.0 - 1e3))
+    x = jnp.array([0.7, -0.3])
+    x1 = x + 1e-9 * jnp.array([0.6, 0.8])
+    derivative = jax.jit(jax.jacfwd(nh.gonzalez, argnums=2), static_argnums=0)(f, x, x1, args)
+    np.testing.assert_allclose(derivative, 0.5 * jax.hessian(f)(x, args), rtol=0, atol=1e-8)
+
+
 def test_gonzalez_resolves_motion_below_the_rounding_of_the_values():
     """f = 1 + |x|^2/2 moved by 1e-13: the values' difference is rounding alone (the
     motion changes f by 1e-26, eps |f| is 2e-16), yet nh.gonzalez is the gradient at the
