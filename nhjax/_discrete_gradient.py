@@ -108,8 +108,8 @@ def _third_directional_derivative(f, x, direction, args):
     Jacobian below $10^{-10}$. Nested autodiff would be exact, but the derivatives of the
     step's root (implicit function theorem) would then need fourth derivatives of $f$,
     and a difference of directional derivatives second ones: for GONZALEZ-R both go
-    through the QR factorisation, in every derivative program, where they were a third
-    of the sleigh's reverse-mode run and of its compile time (`benchmarks/gradients.py`)
+    through the QR factorisation, in every derivative program, where they were about an
+    eighth of the sleigh's and the disk's reverse-mode programs (`benchmarks/gradients.py`)
     though the branch runs only for nearly equal points. Values need no derivative of
     $f$ at all, and their derivatives first ones.
     """
