@@ -15,7 +15,10 @@ from ._system import is_int
 
 def trace_floats(args: PyTree) -> PyTree:
     """Python floats in `args` become arrays, so that changing them does not recompile
-    and gradients reach them; ints, bools and everything else stay static."""
+    and gradients reach them; other leaves are passed on as they are. The run's loops
+    still carry Python ints and bools as traced values (the system's functions see
+    arrays, not Python objects), so a function that branches on one in Python fails to
+    trace: close over it instead, or choose with `jnp.where`."""
     return jax.tree.map(
         lambda leaf: jnp.asarray(leaf) if isinstance(leaf, float) else leaf, args
     )
