@@ -39,6 +39,28 @@ def timed(function, *arguments) -> float:
     return time.perf_counter() - start
 
 
+class CompileTimes:
+    """The seconds before a jitted `function`'s first run on `arguments`: tracing and
+    lowering (`trace_and_lower_s`, timed on construction), plus XLA's compilation with
+    its default emitters (`compile_s`, also on construction), plus, of the same lowered
+    program, with its loop emitter (`loop_emitter_compile_s`, `LOOP_EMITTER`, timed by
+    `times()`, which a caller may put after its memory figures)."""
+
+    def __init__(self, function, *arguments):
+        start = time.perf_counter()
+        self.lowered = function.lower(*arguments)
+        self.trace_and_lower_s = time.perf_counter() - start
+        self.compile_s = self.trace_and_lower_s + timed(self.lowered.compile)
+
+    def times(self) -> dict[str, float]:
+        loop_emitter_s = timed(lambda: self.lowered.compile(compiler_options=LOOP_EMITTER))
+        return dict(
+            compile_s=self.compile_s,
+            trace_and_lower_s=self.trace_and_lower_s,
+            loop_emitter_compile_s=self.trace_and_lower_s + loop_emitter_s,
+        )
+
+
 def run_and_time(function, *arguments, repeats: int) -> tuple[Any, float]:
     """The output of a first, untimed call of `function(*arguments)`, which also warms
     it up, and the median seconds of `repeats` timed calls after it."""

@@ -33,7 +33,6 @@ import pathlib
 import resource
 import subprocess
 import sys
-import time
 
 
 _MODES = (
@@ -87,7 +86,7 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
-    from _timing import LOOP_EMITTER, run_and_time, run_and_time_interleaved, timed
+    from _timing import CompileTimes, run_and_time, run_and_time_interleaved
 
     system, y0, dt, args = _system(system_name)
     # Each mode: the adjoint (None: nhjax's default) and what is taken of the loss.
@@ -109,16 +108,13 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
         return loss
 
     function = jax.jit(transform(loss))
-    start = time.perf_counter()
-    lowered = function.lower(y0)
-    trace_and_lower_s = time.perf_counter() - start
-    compile_s = trace_and_lower_s + timed(lowered.compile)
+    compile_times = CompileTimes(function, y0)
     compiled_peak = _peak_mib()
     value, seconds = run_and_time(function, y0, repeats=repeats)
     finite = all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(value))
     result = dict(
         seconds=seconds,
-        compile_s=compile_s,
+        compile_s=compile_times.compile_s,
         peak_after_compile_mib=compiled_peak,
         peak_mib=_peak_mib(),
         finite=finite,
@@ -129,8 +125,7 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
         _, times = run_and_time_interleaved(dict(derivative=function, forward=jax.jit(loss)), y0, repeats=repeats)
         result["time_ratio_to_forward"] = times["derivative"] / times["forward"]
     # After the memory figures: the same program compiled with XLA:CPU's loop emitter.
-    result["trace_and_lower_s"] = trace_and_lower_s
-    result["loop_emitter_compile_s"] = trace_and_lower_s + timed(lambda: lowered.compile(compiler_options=LOOP_EMITTER))
+    result.update(compile_times.times())
     return result
 
 

@@ -56,7 +56,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import LOOP_EMITTER, run_and_time, timed, write  # noqa: E402
+from _timing import CompileTimes, run_and_time, timed, write  # noqa: E402
 from nhjax._methods import METHODS  # noqa: E402
 
 
@@ -116,17 +116,19 @@ def _peak_mib():
 
 
 def _case(run, argument, repeats, steps):
-    """µs/step, and the seconds before a first run: tracing and lowering, then XLA's
-    compilation with its default emitters (`compile_s` is their sum) and, of the same
-    lowered program, with the loop emitter (`loop_emitter_compile_s`, the same sum)."""
-    start = time.perf_counter()
-    lowered = run.lower(argument)
-    lower_s = time.perf_counter() - start
-    compile_s = lower_s + timed(lowered.compile)
-    loop_emitter_compile_s = lower_s + timed(lambda: lowered.compile(compiler_options=LOOP_EMITTER))
+    """µs/step, the seconds before a first run (`CompileTimes`), and peak memory."""
+    compiled = CompileTimes(run, argument).times()
     output, seconds = run_and_time(run, argument, repeats=repeats)
-    return output, dict(us_per_step=seconds / steps * 1e6, compile_s=compile_s, trace_and_lower_s=lower_s,
-                        loop_emitter_compile_s=loop_emitter_compile_s, peak_rss_mib=_peak_mib())
+    return output, dict(us_per_step=seconds / steps * 1e6, **compiled, peak_rss_mib=_peak_mib())
+
+
+def _method_columns(row, methods) -> str:
+    """µs/step and compile seconds of each method in a row, for the log."""
+    return "; ".join(
+        f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s, "
+        f"{row[name]['loop_emitter_compile_s']:.1f} s with the loop emitter)"
+        for name in methods
+    )
 
 
 def _method_case(system, solver, y0, h, steps, repeats, args=None):
@@ -172,11 +174,7 @@ def main():
         table[n] = row
         print(
             f"n = {n:3d}, k = {n // 4:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
-            + "; ".join(
-                f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s, "
-                f"{row[name]['loop_emitter_compile_s']:.1f} s with the loop emitter)"
-                for name in methods
-            ),
+            + _method_columns(row, methods),
             flush=True,
         )
 
@@ -213,15 +211,7 @@ def _disk(methods, repeats):
             for name, method in methods.items()
         }
         results[form] = row
-        print(
-            f"3D rolling disk, {form}: "
-            + "; ".join(
-                f"{name} {row[name]['us_per_step']:.1f} ({row[name]['compile_s']:.1f} s, "
-                f"{row[name]['loop_emitter_compile_s']:.1f} s with the loop emitter)"
-                for name in methods
-            ),
-            flush=True,
-        )
+        print(f"3D rolling disk, {form}: " + _method_columns(row, methods), flush=True)
     return results
 
 
