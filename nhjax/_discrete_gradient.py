@@ -102,7 +102,8 @@ def _third_directional_derivative(f, x, direction, args):
     `gonzalez_correction`), never values, so it leaves (discGradEn) as it is. Its
     derivative in $x$, $u$ and the arguments is the same difference of first
     derivatives of $f$, in error by $\varepsilon^2|D^6f|/4$ from truncation and
-    $3\epsilon|Df|/\varepsilon^3$ from rounding, about $10^{-6}$ of $|D^4f|$ (and
+    $3\epsilon|Df|/\varepsilon^3$ from rounding, each about $10^{-6}$ where the
+    derivatives of $f$ are of size 1 in units of $S$ (and
     $3D^3f[u, u, \cdot]$, its derivative in $u$, to $5\varepsilon^2|D^5f|/4$): the
     correction term it multiplies by $|\delta|\delta/24$ carries it into the step's
     Jacobian below $10^{-10}$. Nested autodiff would be exact, but the derivatives of the
