@@ -104,10 +104,10 @@ def per_step(system, method, y0, steps, repeats, args=None, dt=0.1):
     return seconds / steps * 1e6, compile_s, iterations
 
 
-def bare_loop_per_step(system, method, y0, steps, repeats, args=None, dt=0.1) -> float:
-    """Median µs/step of the same steps as `per_step` strung together by a bare
-    `lax.scan` of the method's step (`method.advance`), without diffrax's loop: what
-    the loop itself costs is the difference."""
+def bare_loop(system, method, steps, args=None, dt=0.1):
+    """A run of `steps` steps of `method` strung together by a bare `lax.scan` of the
+    method's step (`method.advance`), without diffrax's loop: a function of the start
+    that returns the final state."""
     import jax.numpy as jnp
 
     def run(y0):
@@ -122,8 +122,22 @@ def bare_loop_per_step(system, method, y0, steps, repeats, args=None, dt=0.1) ->
 
         return jax.lax.scan(step, (y0, state), None, length=steps)[0][0]
 
-    _, seconds = run_and_time(jax.jit(run), y0, repeats=repeats)
+    return run
+
+
+def bare_loop_per_step(system, method, y0, steps, repeats, args=None, dt=0.1) -> float:
+    """Median µs/step of the same steps as `per_step` strung together by `bare_loop`:
+    what diffrax's loop costs is the difference."""
+    _, seconds = run_and_time(jax.jit(bare_loop(system, method, steps, args, dt)), y0, repeats=repeats)
     return seconds / steps * 1e6
+
+
+def bare_loop_batch_rate(system, method, states, steps, repeats, args=None, dt=0.1) -> float:
+    """Median trajectory-steps/s of `bare_loop` vmapped over the leading axis of
+    `states`, as `batch_rate` for `nhjax.integrate`."""
+    run = jax.jit(jax.vmap(bare_loop(system, method, steps, args, dt)))
+    _, seconds = run_and_time(run, states, repeats=repeats)
+    return jax.tree.leaves(states)[0].shape[0] * steps / seconds
 
 
 def batch_rate(system, method, states, steps, repeats, args=None, dt=0.1):

@@ -12,16 +12,20 @@ that a run cut short keeps what it measured):
   ratio method / yardstick; with the compile time and the failed trajectories.
 - `cpu`: the same figures for batches 1 and 200 on the host's CPU, where the default
   device is not a CPU.
-- `loop`: µs/step of GONZALEZ-R through `nhjax.integrate` against a bare `lax.scan`
-  of its steps (`_timing.bare_loop_per_step`): what diffrax's loop costs per step.
 - `invariants`: one GONZALEZ-R trajectory of `--single-steps` steps on the default
   device: largest relative energy error and constraint residual, and the distance of
   its final state to the same run on the CPU.
 - `gradients`: reverse-mode derivatives of a loss on the final state through 2 000
   GONZALEZ-R steps: forward run, reverse run and their compile times.
-- `levers` (`--levers`): batches 1 and 200 of GONZALEZ-R again in child processes,
-  each with one candidate value of `XLA_FLAGS` (`LEVERS`: command buffers, CUDA
-  graphs for loops); a flag XLA does not know ends its child, which is recorded.
+- `levers` (`--levers`): GONZALEZ-R on the gearbox again, one trajectory and a batch of
+  200, in child processes, each with one candidate value of `XLA_FLAGS` (`LEVERS`:
+  command buffers, CUDA graphs for loops; a flag XLA does not know ends its child,
+  which is recorded), and in each child four loops (`LOOPS`): through `nhjax.integrate`
+  (diffrax's while loop over the steps) or a bare `lax.scan` of the steps
+  (`_timing.bare_loop`), each with the chord iteration's while loop or a loop of a
+  fixed trip count first (`PresetChord(fixed_trip=FIXED_TRIP)`, then the while loop).
+  A while loop's condition goes to the host at every iteration; a fixed trip count's
+  does not.
 
 `--budget-s` bounds the whole run: batches and sections that would start after it are
 recorded as skipped.
@@ -49,7 +53,8 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import bare_loop_per_step, batch_rate, machine, options, per_step, run_and_time, yardstick  # noqa: E402
+from _timing import bare_loop_batch_rate, bare_loop_per_step, batch_rate, machine, options, per_step, run_and_time, yardstick  # noqa: E402
+from nhjax._solver.chord import PresetChord  # noqa: E402
 
 
 BATCHES = (1, 200, 2_000, 20_000, 200_000)
@@ -66,6 +71,10 @@ LEVERS = {
     ),
     "no command buffers": "--xla_gpu_enable_command_buffer=",
 }
+# Iterations of the chord loop of fixed trip count: at h = 0.1, 99.6% of the gearbox's
+# steps take at most 6 (a while loop takes the rest).
+FIXED_TRIP = 6
+LOOPS = ("integrate", "integrate, fixed-trip chord", "bare scan", "bare scan, fixed-trip chord")
 
 
 def _cases():
@@ -201,13 +210,25 @@ def _gradients(steps, repeats):
 
 
 def _lever_child(steps, single_steps, repeats):
-    """In a child process: batches 1 and 200 of GONZALEZ-R under this process's
-    `XLA_FLAGS`, as one JSON line."""
+    """In a child process: one trajectory and a batch of 200 of GONZALEZ-R on the
+    gearbox, by each of `LOOPS`, under this process's `XLA_FLAGS`, as one JSON line."""
     _, system, method, states = _cases()[0]
-    us, compile_s, _ = per_step(system, method, _first(states(1)), single_steps, repeats, dt=DT)
-    rate, failed = batch_rate(system, method, states(200), steps, repeats, dt=DT)
-    print("LEVER " + json.dumps(dict(us_per_step=us, compile_s=compile_s, batch_200_trajectory_steps_per_s=rate,
-                                     failed=failed)), flush=True)
+    dtype = jax.tree.leaves(states(1))[0].dtype
+    fixed = nh.GonzalezR(root_finder=PresetChord(atol=64 * float(jnp.finfo(dtype).eps), fixed_trip=FIXED_TRIP))
+    results = {}
+    for loop in LOOPS:
+        chosen = fixed if "fixed-trip" in loop else method
+        if loop.startswith("integrate"):
+            us, compile_s, _ = per_step(system, chosen, _first(states(1)), single_steps, repeats, dt=DT)
+            rate, failed = batch_rate(system, chosen, states(200), steps, repeats, dt=DT)
+            results[loop] = dict(us_per_step=us, compile_s=compile_s, batch_200_trajectory_steps_per_s=rate,
+                                 failed=failed)
+        else:
+            us = bare_loop_per_step(system, chosen, _first(states(1)), single_steps, repeats, dt=DT)
+            rate = bare_loop_batch_rate(system, chosen, states(200), steps, repeats, dt=DT)
+            results[loop] = dict(us_per_step=us, batch_200_trajectory_steps_per_s=rate)
+        print(loop, results[loop], file=sys.stderr, flush=True)
+    print("LEVER " + json.dumps(results), flush=True)
 
 
 def _levers(report, steps, single_steps, repeats):
@@ -216,13 +237,15 @@ def _levers(report, steps, single_steps, repeats):
         if not report.left():
             results[label] = "skipped (budget)"
             continue
-        environment = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip())
+        # The parent holds JAX's preallocated share of the device's memory.
+        environment = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip(),
+                           XLA_PYTHON_CLIENT_PREALLOCATE="false")
         command = [sys.executable, __file__, "--lever-child", "1", "--steps", str(steps),
                    "--single-steps", str(single_steps), "--repeats", str(repeats)]
         completed = subprocess.run(command, env=environment, capture_output=True, text=True)
         lines = [line for line in completed.stdout.splitlines() if line.startswith("LEVER ")]
         if completed.returncode == 0 and lines:
-            results[label] = dict(json.loads(lines[-1][len("LEVER "):]), xla_flags=flags)
+            results[label] = dict(json.loads(lines[-1][len("LEVER "):]), xla_flags=flags, fixed_trip=FIXED_TRIP)
         else:
             results[label] = dict(xla_flags=flags, failed=f"exit {completed.returncode}: {completed.stderr[-400:]}")
         print(label, results[label], flush=True)
@@ -242,21 +265,15 @@ def main():
     batches = QUICK_BATCHES if arguments.quick else BATCHES
     report = _Report(arguments.out, arguments.budget_s)
     report.save("throughput", _throughput(report, batches, arguments.steps, arguments.single_steps, arguments.repeats))
-    if jax.devices()[0].platform != "cpu" and report.left():
-        report.save("cpu", _throughput(report, (1, 200), arguments.steps, arguments.single_steps, arguments.repeats,
-                                       device=jax.devices("cpu")[0]))
-    if report.left():
-        name, system, method, states = _cases()[0]
-        y0 = _first(states(1))
-        through_integrate = per_step(system, method, y0, arguments.single_steps, arguments.repeats, dt=DT)[0]
-        bare = bare_loop_per_step(system, method, y0, arguments.single_steps, arguments.repeats, dt=DT)
-        report.save("loop", dict(method=name, integrate_us_per_step=through_integrate, bare_scan_us_per_step=bare))
+    if arguments.levers and report.left():
+        report.save("levers", _levers(report, arguments.steps, min(arguments.single_steps, 2_000), arguments.repeats))
     if report.left():
         report.save("invariants", _invariants(arguments.single_steps))
     if report.left():
         report.save("gradients", _gradients(arguments.gradient_steps, arguments.repeats))
-    if arguments.levers and report.left():
-        report.save("levers", _levers(report, arguments.steps, min(arguments.single_steps, 2_000), arguments.repeats))
+    if jax.devices()[0].platform != "cpu" and report.left():
+        report.save("cpu", _throughput(report, (1, 200), arguments.steps, arguments.single_steps, arguments.repeats,
+                                       device=jax.devices("cpu")[0]))
     print(f"wrote {report.path} in {time.perf_counter() - report.start:.0f} s")
 
 

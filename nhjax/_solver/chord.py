@@ -15,6 +15,7 @@ saves $O(n^2k^2)$ work per step: `nhjax.GonzalezR.chord_jacobian`; it then bound
 error the iteration leaves, `PresetChord.solve`'s `remainder`.)
 """
 
+import functools
 from typing import Any
 
 import equinox as eqx
@@ -108,11 +109,20 @@ class PresetChord(optx.AbstractRootFinder):
     projection (`nhjax.Projection`) passes the rounding of the invariants, which near
     an equilibrium, where their gradients are small, moves the state by more than
     `atol` per iteration.
+
+    **A fixed trip count first** (`fixed_trip=k`; `solve` only): the first k iterations
+    run in a loop of a trip count fixed at compile time, those after the iteration has
+    stopped masked (they keep the carry), and a while loop takes the rest, up to
+    `max_steps`: the same iterate, code and count as the while loop alone. On a GPU the
+    condition of a while loop is copied to the host at every iteration; with k at least
+    the usual number of iterations, a step copies it once, at the price of the masked
+    iterations (`benchmarks/gpu.py` measures it).
     """
 
     atol: float
     rtol: float = 0.0
     norm: Any = optx.max_norm
+    fixed_trip: int = 0
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del f_struct, aux_struct, tags
@@ -237,6 +247,12 @@ class PresetChord(optx.AbstractRootFinder):
             return (new_y, new_state) + terminate_and_result(y, new_state)
 
         init = (y0, _with_constants(state, (None, None, None))) + terminate_and_result(y0, state)
+        if self.fixed_trip:
+            # Every one of these iterations runs; those after the end keep the carry.
+            def masked_body(_, carry):
+                return jax.tree.map(functools.partial(jnp.where, cond(carry)), body(carry), carry)
+
+            init = lax.fori_loop(0, min(self.fixed_trip, max_steps), masked_body, init)
         y, state, terminate, result = lax.while_loop(cond, body, init)
         result = optx.RESULTS.where(
             (result == optx.RESULTS.successful) & ~terminate, optx.RESULTS.nonlinear_max_steps_reached, result

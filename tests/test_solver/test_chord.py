@@ -132,6 +132,26 @@ def test_own_loop_is_the_optimistix_iteration(case):
     assert own.result == reference.result
 
 
+@pytest.mark.parametrize("fixed_trip", [3, 1000])
+@pytest.mark.parametrize("case", list(_CASES))
+def test_a_fixed_trip_count_first_is_the_while_loop(case, fixed_trip):
+    """`fixed_trip=k` runs the first k iterations (at most `max_steps`) in a loop of
+    known trip count, those after the end masked, then the while loop: the same
+    iterate, code, count and last residual size, to the bit, as the while loop alone."""
+    fn, inverse, max_steps = _CASES[case]
+
+    def solve(fixed_trip):
+        chord = PresetChord(atol=ATOL, fixed_trip=fixed_trip)
+        return chord.solve(fn, jnp.zeros(3), None, inverse, max_steps, remainder=1e-4)
+
+    fixed, reference = (jax.jit(lambda k=k: solve(k)) for k in (fixed_trip, 0))
+    for field in ("value", "steps", "residual_size"):
+        np.testing.assert_array_equal(getattr(fixed(), field), getattr(reference(), field), err_msg=field)
+    assert fixed().result == reference().result
+    trips = min(fixed_trip, max_steps)
+    assert f'"known_trip_count":{{"n":"{trips}"}}' in fixed.lower().compile().as_text()
+
+
 def test_own_loop_under_vmap_gives_each_member_its_own_iteration():
     """A batch of starts that converge in different numbers of iterations, one of them
     NaN: each member's root, code and count are those of its own run alone."""
