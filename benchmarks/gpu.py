@@ -2,21 +2,14 @@
 200 000, beside the vmapped implicit-midpoint yardstick (`_timing.yardstick`) at the same
 batch, timed in the same process on the default device (a GPU where JAX has one).
 
-Sections of `benchmarks/results/gpu.json` (each written as soon as it is measured, so
-that a run cut short keeps what it measured):
+Sections of `benchmarks/results/gpu.json` in the order measured (each written as soon as
+it is measured, so that a run cut short keeps what it measured):
 
 - `throughput`: for GONZALEZ-R and SI-DLA on the gearbox (canonical) and
   DiscreteGradient on the n = 3 quartic (adapted), h = 0.1: one trajectory of
   `--single-steps` steps (µs/step), then vmapped batches of `--steps` steps (one save),
   trajectory-steps/s, the yardstick's at the same batch and size of run, and the time
   ratio method / yardstick; with the compile time and the failed trajectories.
-- `cpu`: the same figures for batches 1 and 200 on the host's CPU, where the default
-  device is not a CPU.
-- `invariants`: one GONZALEZ-R trajectory of `--single-steps` steps on the default
-  device: largest relative energy error and constraint residual, and the distance of
-  its final state to the same run on the CPU.
-- `gradients`: reverse-mode derivatives of a loss on the final state through 2 000
-  GONZALEZ-R steps: forward run, reverse run and their compile times.
 - `levers` (`--levers`): GONZALEZ-R on the gearbox again, one trajectory and a batch of
   200, in child processes, each with one candidate value of `XLA_FLAGS` (`LEVERS`:
   command buffers, CUDA graphs for loops; a flag XLA does not know ends its child,
@@ -26,6 +19,13 @@ that a run cut short keeps what it measured):
   fixed trip count first (`PresetChord(fixed_trip=FIXED_TRIP)`, then the while loop).
   A while loop's condition goes to the host at every iteration; a fixed trip count's
   does not.
+- `invariants`: one GONZALEZ-R trajectory of `--single-steps` steps on the default
+  device: largest relative energy error and constraint residual, and the distance of
+  its final state to the same run on the CPU.
+- `gradients`: reverse-mode derivatives of a loss on the final state through 2 000
+  GONZALEZ-R steps: forward run, reverse run and their compile times.
+- `cpu`: the same figures for batches 1 and 200 on the host's CPU, where the default
+  device is not a CPU.
 
 `--budget-s` bounds the whole run: batches and sections that would start after it are
 recorded as skipped.
@@ -33,7 +33,9 @@ recorded as skipped.
 Run: python benchmarks/gpu.py [--repeats 3] [--quick] [--levers] [--budget-s 480]
 (on a machine with a GPU and JAX installed for it; with the checkout on `PYTHONPATH`,
 no install of nhjax is needed). `--quick`: batches up to 2 000 and shorter runs, a smoke
-test that also runs on a CPU.
+test that also runs on a CPU. With minutes of a GPU, `--levers --single-steps 5000
+--budget-s 370` measures the throughput table and the levers first; a section that
+has started runs to its end, so allow a few minutes beyond the budget.
 """
 
 import contextlib
