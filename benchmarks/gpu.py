@@ -10,6 +10,11 @@ it is measured, so that a run cut short keeps what it measured):
   `--single-steps` steps (µs/step), then vmapped batches of `--steps` steps (one save),
   trajectory-steps/s, the yardstick's at the same batch and size of run, and the time
   ratio method / yardstick; with the compile time and the failed trajectories.
+- `invariants`: one GONZALEZ-R trajectory of `--single-steps` steps on the default
+  device: largest relative energy error and constraint residual, and the distance of
+  its final state to the same run on the CPU.
+- `gradients`: reverse-mode derivatives of a loss on the final state through 2 000
+  GONZALEZ-R steps: forward run, reverse run and their compile times.
 - `levers` (`--levers`): GONZALEZ-R on the gearbox again, one trajectory and a batch of
   200, in child processes, each with one candidate value of `XLA_FLAGS` (`LEVERS`:
   command buffers, CUDA graphs for loops; a flag XLA does not know ends its child,
@@ -19,11 +24,6 @@ it is measured, so that a run cut short keeps what it measured):
   fixed trip count first (`PresetChord(fixed_trip=FIXED_TRIP)`, then the while loop).
   A while loop's condition goes to the host at every iteration; a fixed trip count's
   does not.
-- `invariants`: one GONZALEZ-R trajectory of `--single-steps` steps on the default
-  device: largest relative energy error and constraint residual, and the distance of
-  its final state to the same run on the CPU.
-- `gradients`: reverse-mode derivatives of a loss on the final state through 2 000
-  GONZALEZ-R steps: forward run, reverse run and their compile times.
 - `cpu`: the same figures for batches 1 and 200 on the host's CPU, where the default
   device is not a CPU.
 
@@ -34,8 +34,9 @@ Run: python benchmarks/gpu.py [--repeats 3] [--quick] [--levers] [--budget-s 480
 (on a machine with a GPU and JAX installed for it; with the checkout on `PYTHONPATH`,
 no install of nhjax is needed). `--quick`: batches up to 2 000 and shorter runs, a smoke
 test that also runs on a CPU. With minutes of a GPU, `--levers --single-steps 5000
---budget-s 370` measures the throughput table and the levers first; a section that
-has started runs to its end, so allow a few minutes beyond the budget.
+--budget-s 370` measures the throughput table, the invariants, the gradients and the
+first levers; a section that has started runs to its end (a lever's child too), so
+allow a few minutes beyond the budget.
 """
 
 import contextlib
@@ -267,12 +268,12 @@ def main():
     batches = QUICK_BATCHES if arguments.quick else BATCHES
     report = _Report(arguments.out, arguments.budget_s)
     report.save("throughput", _throughput(report, batches, arguments.steps, arguments.single_steps, arguments.repeats))
-    if arguments.levers and report.left():
-        report.save("levers", _levers(report, arguments.steps, min(arguments.single_steps, 2_000), arguments.repeats))
     if report.left():
         report.save("invariants", _invariants(arguments.single_steps))
     if report.left():
         report.save("gradients", _gradients(arguments.gradient_steps, arguments.repeats))
+    if arguments.levers and report.left():
+        report.save("levers", _levers(report, arguments.steps, min(arguments.single_steps, 2_000), arguments.repeats))
     if jax.devices()[0].platform != "cpu" and report.left():
         report.save("cpu", _throughput(report, (1, 200), arguments.steps, arguments.single_steps, arguments.repeats,
                                        device=jax.devices("cpu")[0]))
