@@ -18,12 +18,16 @@ it is measured, so that a run cut short keeps what it measured):
 - `levers` (`--levers`): GONZALEZ-R on the gearbox again, one trajectory and a batch of
   200, in child processes, each with one candidate value of `XLA_FLAGS` (`LEVERS`:
   command buffers, CUDA graphs for loops; a flag XLA does not know ends its child,
-  which is recorded), and in each child four loops (`LOOPS`): through `nhjax.integrate`
+  which is recorded), and in each child the runs of `LOOPS`: through `nhjax.integrate`
   (diffrax's while loop over the steps) or a bare `lax.scan` of the steps
-  (`_timing.bare_loop`), each with the chord iteration's while loop or a loop of a
-  fixed trip count first (`PresetChord(fixed_trip=FIXED_TRIP)`, then the while loop).
-  A while loop's condition goes to the host at every iteration; a fixed trip count's
-  does not.
+  (`_timing.bare_loop`); the step's rare branches by `lax.cond` or evaluated and
+  selected; the chord iteration by its while loop or a loop of a fixed trip count
+  first (`PresetChord(fixed_trip=FIXED_TRIP)`, then the while loop). Each while-loop
+  iteration and each `lax.cond` copies a predicate to the host: a GONZALEZ-R step on
+  the gearbox has diffrax's loop and a `lax.cond` in it, the chord matrix's `rarely`,
+  and per chord iteration (4.4 a step) the loop's condition and the discrete
+  gradient's `rarely`; with both branches selected and a fixed trip count, one
+  condition per step is left beside diffrax's.
 - `cpu`: the same figures for batches 1 and 200 on the host's CPU, where the default
   device is not a CPU.
 
@@ -57,6 +61,7 @@ jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
 from _timing import bare_loop_batch_rate, bare_loop_per_step, batch_rate, machine, options, per_step, run_and_time, yardstick  # noqa: E402
+import nhjax._rare_branch as rare_branch  # noqa: E402
 from nhjax._solver.chord import PresetChord  # noqa: E402
 
 
@@ -77,7 +82,18 @@ LEVERS = {
 # Iterations of the chord loop of fixed trip count: at h = 0.1, 99.6% of the gearbox's
 # steps take at most 6 (a while loop takes the rest).
 FIXED_TRIP = 6
-LOOPS = ("integrate", "integrate, fixed-trip chord", "bare scan", "bare scan, fixed-trip chord")
+# (loop, branches, chord loop) of each lever's runs, in the order run: "both branches"
+# sets `nhjax._rare_branch.EVALUATE_BOTH_BRANCHES` (the rare branches of a step, such
+# as the discrete gradient's for nearly equal points, evaluated and selected instead of
+# a `lax.cond` per chord iteration) for the runs from there on.
+LOOPS = (
+    ("integrate", "cond", "while"),
+    ("bare scan", "cond", "while"),
+    ("integrate", "both branches", "while"),
+    ("bare scan", "both branches", "while"),
+    ("integrate", "both branches", "fixed trip"),
+    ("bare scan", "both branches", "fixed trip"),
+)
 
 
 def _cases():
@@ -219,18 +235,22 @@ def _lever_child(steps, single_steps, repeats):
     dtype = jax.tree.leaves(states(1))[0].dtype
     fixed = nh.GonzalezR(root_finder=PresetChord(atol=64 * float(jnp.finfo(dtype).eps), fixed_trip=FIXED_TRIP))
     results = {}
-    for loop in LOOPS:
-        chosen = fixed if "fixed-trip" in loop else method
-        if loop.startswith("integrate"):
+    for loop, branches, chord in LOOPS:
+        if branches == "both branches" and not rare_branch.EVALUATE_BOTH_BRANCHES:
+            rare_branch.EVALUATE_BOTH_BRANCHES = True
+            jax.clear_caches()  # the steps traced so far hold their conditionals
+        chosen = fixed if chord == "fixed trip" else method
+        label = ", ".join((loop, branches, chord))
+        if loop == "integrate":
             us, compile_s, _ = per_step(system, chosen, _first(states(1)), single_steps, repeats, dt=DT)
             rate, failed = batch_rate(system, chosen, states(200), steps, repeats, dt=DT)
-            results[loop] = dict(us_per_step=us, compile_s=compile_s, batch_200_trajectory_steps_per_s=rate,
-                                 failed=failed)
+            results[label] = dict(us_per_step=us, compile_s=compile_s, batch_200_trajectory_steps_per_s=rate,
+                                  failed=failed)
         else:
             us = bare_loop_per_step(system, chosen, _first(states(1)), single_steps, repeats, dt=DT)
             rate = bare_loop_batch_rate(system, chosen, states(200), steps, repeats, dt=DT)
-            results[loop] = dict(us_per_step=us, batch_200_trajectory_steps_per_s=rate)
-        print(loop, results[loop], file=sys.stderr, flush=True)
+            results[label] = dict(us_per_step=us, batch_200_trajectory_steps_per_s=rate)
+        print(label, results[label], file=sys.stderr, flush=True)
     print("LEVER " + json.dumps(results), flush=True)
 
 

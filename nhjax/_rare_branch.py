@@ -14,6 +14,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, PyTree
 
 
+# Read when a function is traced: `rarely` then evaluates the rare branch at every call
+# and selects, with no `lax.cond`. On a GPU a `lax.cond` copies its predicate to the
+# host, which can cost more than a small branch; `benchmarks/gpu.py` sets it in a child
+# process to measure that. Off everywhere else.
+EVALUATE_BOTH_BRANCHES = False
+
+
 def rarely(taken: Bool[Array, ""], rare: Callable[[PyTree], PyTree], common: PyTree, operands: PyTree) -> PyTree:
     """`rare(operands)` where `taken`, else `common` (`rare` returns arrays of the same
     structure, shapes and dtypes).
@@ -23,6 +30,8 @@ def rarely(taken: Bool[Array, ""], rare: Callable[[PyTree], PyTree], common: PyT
     own branch's value. Not differentiable: the caller passes inputs cut from
     differentiation (`lax.stop_gradient`), whose tangents are zero, so that no
     derivative of this function is ever formed."""
+    if EVALUATE_BOTH_BRANCHES:
+        return jax.tree.map(lambda value, other: jnp.where(taken, value, other), rare(operands), common)
     dynamic, static = eqx.partition(operands, eqx.is_array)
 
     def evaluate(dynamic):

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import nhjax._rare_branch
 from nhjax._rare_branch import rarely
 
 
@@ -56,3 +57,26 @@ def test_under_vmap_each_member_gets_its_branch_and_the_branch_runs_only_when_ne
     assert len(calls) == 1  # no member takes it: not evaluated
     np.testing.assert_array_equal(values, -xs)
     np.testing.assert_array_equal(scales, -jnp.ones(4))
+
+
+def test_evaluating_both_branches_selects_the_same_values_without_a_conditional(monkeypatch):
+    """With `EVALUATE_BOTH_BRANCHES` (set before tracing) every call evaluates the rare
+    branch and selects: the same values, alone and under vmap, and no `conditional` in
+    the compiled program."""
+    xs = jnp.linspace(0.1, 0.8, 12).reshape(4, 3)
+    some = jnp.array([False, True, False, True])
+
+    def batch(taken):
+        rare = lambda operands: (jnp.sin(operands[0]) * operands[1], 2 * operands[1])  # noqa: E731
+        return jax.vmap(lambda t, x, c: rarely(t, rare, c, (x, jnp.asarray(3.0))))(taken, xs, (-xs, -jnp.ones(4)))
+
+    with_cond = jax.jit(batch)
+    expected = with_cond(some)
+    assert "conditional(" in with_cond.lower(some).compile().as_text()
+    monkeypatch.setattr(nhjax._rare_branch, "EVALUATE_BOTH_BRANCHES", True)
+    selected = jax.jit(lambda taken: batch(taken))
+    for got, want in zip(selected(some), expected):
+        np.testing.assert_array_equal(got, want)
+    assert "conditional(" not in selected.lower(some).compile().as_text()
+    alone = jax.jit(lambda x: rarely(jnp.asarray(True), lambda o: jnp.sin(o), -x, x))(xs[0])
+    np.testing.assert_array_equal(alone, jnp.sin(xs[0]))
