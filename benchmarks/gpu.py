@@ -22,7 +22,8 @@ it is measured, so that a run cut short keeps what it measured):
   (diffrax's while loop over the steps) or a bare `lax.scan` of the steps
   (`_timing.bare_loop`); the step's rare branches by `lax.cond` or evaluated and
   selected; the chord iteration by its while loop or a loop of a fixed trip count
-  first (`PresetChord(fixed_trip=FIXED_TRIP)`, then the while loop). Each while-loop
+  first (the default chord iteration with `fixed_trip=FIXED_TRIP`, then its while
+  loop). Each while-loop
   iteration and each `lax.cond` copies a predicate to the host: a GONZALEZ-R step on
   the gearbox has diffrax's loop and a `lax.cond` in it, the chord matrix's `rarely`,
   and per chord iteration (4.4 a step) the loop's condition and the discrete
@@ -44,6 +45,7 @@ allow a few minutes beyond the budget.
 """
 
 import contextlib
+import dataclasses
 import json
 import os
 import pathlib
@@ -62,7 +64,7 @@ jax.config.update("jax_enable_x64", True)
 import nhjax as nh  # noqa: E402
 from _timing import bare_loop_batch_rate, bare_loop_per_step, batch_rate, machine, options, per_step, run_and_time, yardstick  # noqa: E402
 import nhjax._rare_branch as rare_branch  # noqa: E402
-from nhjax._solver.chord import PresetChord  # noqa: E402
+from nhjax._solver.base import default_root_finder  # noqa: E402
 
 
 BATCHES = (1, 200, 2_000, 20_000, 200_000)
@@ -232,8 +234,8 @@ def _lever_child(steps, single_steps, repeats):
     """In a child process: one trajectory and a batch of 200 of GONZALEZ-R on the
     gearbox, by each of `LOOPS`, under this process's `XLA_FLAGS`, as one JSON line."""
     _, system, method, states = _cases()[0]
-    dtype = jax.tree.leaves(states(1))[0].dtype
-    fixed = nh.GonzalezR(root_finder=PresetChord(atol=64 * float(jnp.finfo(dtype).eps), fixed_trip=FIXED_TRIP))
+    chord = default_root_finder(jax.tree.leaves(states(1))[0].dtype)
+    fixed = nh.GonzalezR(root_finder=dataclasses.replace(chord, fixed_trip=FIXED_TRIP))
     results = {}
     for loop, branches, chord in LOOPS:
         if branches == "both branches" and not rare_branch.EVALUATE_BOTH_BRANCHES:

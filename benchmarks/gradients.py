@@ -114,7 +114,6 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
     finite = all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(value))
     result = dict(
         seconds=seconds,
-        compile_s=compile_times.compile_s,
         peak_after_compile_mib=compiled_peak,
         peak_mib=_peak_mib(),
         finite=finite,
