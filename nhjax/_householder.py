@@ -11,13 +11,14 @@ The signs $s \in \{+1, -1\}^k$ are explicit. The stable choice $s_j = \mathrm{si
 (no cancellation in $\tilde w_1$) is what `householder_signs` returns; passing the same
 $s$ to every later factorisation makes $q \mapsto X(q; s)$ one smooth frame on the
 neighbourhood of the first point where no $\tilde w$ vanishes, so that frames sampled at
-different points of one step belong to the same basis vector fields. Every operation is
-a plain `jax.numpy` operation, so `jax.jacfwd` through `householder_frame` gives
-$\partial X/\partial q$: this replaces the paper's Algorithm 1 (its second half is the
-forward-mode derivative of its first). Where only products $X^Tv$ are needed,
-`HouseholderFrame` forms them from the reflectors without forming $X$ ($O(nk)$ per
-product instead of $O(nmk)$ for $X$), and the derivative of such a product is a
-derivative of $k$ reflections of one vector.
+different points of one step belong to the same basis vector fields. `jax.jacfwd`
+through `householder_frame` gives $\partial X/\partial q$: this replaces the paper's
+Algorithm 1 (its second half is the forward-mode derivative of its first). For a few
+constraints every operation is a plain `jax.numpy` operation, differentiated step by
+step; above `UNROLLED_REFLECTIONS` the reflections are differentiated in closed form
+(`_reflector_tangents`). Where only products $X^Tv$ are needed, `HouseholderFrame`
+forms them from the reflectors without forming $X$ ($O(nk)$ per product instead of
+$O(nmk)$ for $X$).
 """
 
 import functools
@@ -33,10 +34,14 @@ from ._linalg import safe_norm
 
 
 # Up to this many reflections the loops over them are unrolled: the fewest operations
-# for the few constraints of most systems. Beyond it they run as `lax.scan`, whose
-# program does not grow with k: unrolled, every factorisation, product and derivative
-# of them in a step is k copies, and at k = 16 (n = 64 in `benchmarks/scaling.py`)
-# they set the compile time.
+# for the few constraints of most systems. Beyond it the factorisation runs as a
+# `lax.scan`, whose program does not grow with k, differentiated in closed form
+# (`_reflector_tangents`), and products with the frame take the compact WY form
+# (`_wy_factor`): unrolled, every factorisation, product and derivative of them in a
+# step is k copies, and at k = 16 (n = 64 in `benchmarks/scaling.py`) they set the
+# compile time; differentiated through the scan, the derivatives are k sequential
+# steps forward and k again transposed, which made most of a GONZALEZ-R residual
+# there.
 UNROLLED_REFLECTIONS = 4
 
 
@@ -75,12 +80,7 @@ def _reflectors(a_t, signs):
     $|\tilde w_j|/\sqrt2$, R's diagonal magnitudes |x_j|, and the signs used."""
     k = a_t.shape[1]
     if k > UNROLLED_REFLECTIONS:
-        def step(r, j_and_sign):
-            j, given_sign = j_and_sign
-            return _reflection(r, j, None if signs is None else given_sign)
-
-        given = jnp.zeros((k,), a_t.dtype) if signs is None else signs
-        return lax.scan(step, a_t, (jnp.arange(k), given))[1]
+        return _scanned_reflectors(a_t, signs)
     r = a_t
     outputs = []
     for j in range(k):
@@ -88,6 +88,93 @@ def _reflectors(a_t, signs):
         outputs.append(output)
     vectors, pivots, norms, used = zip(*outputs)
     return jnp.stack(vectors), jnp.stack(pivots), jnp.stack(norms), jnp.stack(used)
+
+
+@jax.custom_jvp
+def _scanned_reflectors(a_t, signs):
+    """`_reflectors` as a scan over the reflections, differentiated in closed form
+    (`_reflector_tangents`)."""
+    k = a_t.shape[1]
+
+    def step(r, j_and_sign):
+        j, given_sign = j_and_sign
+        return _reflection(r, j, None if signs is None else given_sign)
+
+    given = jnp.zeros((k,), a_t.dtype) if signs is None else signs
+    return lax.scan(step, a_t, (jnp.arange(k), given))[1]
+
+
+@_scanned_reflectors.defjvp
+def _scanned_reflectors_jvp(primals, tangents):
+    a_t, signs = primals
+    a_t_dot = tangents[0]
+    outputs = _scanned_reflectors(a_t, signs)
+    vectors, _, norms, used = outputs
+    vectors_dot, pivots_dot, norms_dot = _reflector_tangents(a_t, vectors, norms, a_t_dot)
+    return outputs, (vectors_dot, pivots_dot, norms_dot, jnp.zeros_like(used))
+
+
+def _wy_factor(w: Float[Array, "n k"]) -> Float[Array, "k k"]:
+    r"""$T$ of the compact WY form $H_1\cdots H_k = I - WT^{-1}W^T$ of the reflections
+    $H_j = I - 2w_jw_j^T$ (the columns of `w`): $T = \tfrac12I + \operatorname{striu}(W^TW)$
+    (Joffrain, Low, Quintana-Ortí, van de Geijn & Van Zee, "Accumulating Householder
+    transformations, revisited", ACM TOMS 32 (2006) 169, the UT transform)."""
+    return jnp.triu(w.T @ w, 1) + 0.5 * jnp.eye(w.shape[1], dtype=w.dtype)
+
+
+def _nonzero_diagonal(a: Float[Array, "k k"]) -> Float[Array, "k k"]:
+    """`a` with a zero diagonal entry replaced by 1: finite tangents where the
+    factorisation breaks down (rank loss), which the caller reports."""
+    diagonal = jnp.diagonal(a)
+    return a + jnp.diag(jnp.where(diagonal == 0, 1.0, 0.0).astype(a.dtype))
+
+
+def _reflector_tangents(a_t, vectors, norms, a_t_dot):
+    r"""The tangents of the unit Householder vectors $w_j$, the pivots and $|R_{jj}|$
+    along $dA^T$, in closed form: a few products of $n \times k$ and $k \times k$
+    matrices and triangular solves, where differentiating the scan of $k$ reflections
+    costs $k$ sequential steps forward and again transposed.
+
+    With $Q = H_1\cdots H_k = I - WT^{-1}W^T$ (`_wy_factor`), its first $k$ columns are
+    $Q_1 = E - WV$, $E = [I_k; 0]$, $V = T^{-1}W_1^T$ upper triangular ($W_1$ the top
+    $k \times k$ block of $W$, lower triangular): $E - Q_1 = WV$ is an LU factorisation,
+    whose factors are fixed by $Q_1$ up to the scaling of $W$'s columns (Ballard,
+    Demmel, Grigori, Jacquelin, Nguyen & Solomonik, "Reconstructing Householder
+    vectors from tall-skinny QR", IPDPS 2014). So:
+
+    1. the thin QR $A^T = Q_1R$ (with R's signs those of the factorisation) gives
+       $dQ_1 = dA^TR^{-1} - Q_1\,dR\,R^{-1}$ with $dR\,R^{-1} = M - C$,
+       $M = Q_1^TdA^TR^{-1}$, $C = \operatorname{tril}(M, -1) - \operatorname{tril}(M, -1)^T$
+       (the skew $Q_1^TdQ_1$);
+    2. the LU factorisation's derivative: with $G = W_1^{-1}(-dQ_1)_1V^{-1}$,
+       $W_1^{-1}dW_1 = \operatorname{tril}(G, -1) + \Delta$ and
+       $dV\,V^{-1} = \operatorname{triu}(G) - \Delta$, so
+       $dW = [W_1\operatorname{tril}(G, -1);\ -(dQ_1)_2V^{-1} - W_2\operatorname{triu}(G)]
+       + W\Delta$, the diagonal $\Delta$ fixed by $w_j^Tdw_j = 0$ (unit vectors);
+    3. $|R_{jj}|$ changes by $M_{jj}|R_{jj}|$, and the pivot
+       $|\tilde w_j|/\sqrt2 = \sqrt2\,|R_{jj}|\,|w_{jj}|$ accordingly.
+
+    These are the derivatives of the reflections themselves (checked against
+    differentiating the unrolled reflections, `tests/test_householder.py`)."""
+    k = a_t.shape[1]
+    w = vectors.T
+    w_top = w[:k]
+    v = lax.linalg.triangular_solve(_wy_factor(w), w_top.T, left_side=True, lower=False)
+    q1 = jnp.eye(*a_t.shape, dtype=a_t.dtype) - w @ v
+    r = _nonzero_diagonal(jnp.triu(q1.T @ a_t))
+    a_r = lax.linalg.triangular_solve(r, a_t_dot, left_side=False, lower=False)
+    m = q1.T @ a_r
+    lower = jnp.tril(m, -1)
+    q1_dot = a_r - q1 @ (m - lower + lower.T)
+    b_dot_v = lax.linalg.triangular_solve(_nonzero_diagonal(v), -q1_dot, left_side=False, lower=False)
+    g = lax.linalg.triangular_solve(_nonzero_diagonal(w_top), b_dot_v[:k], left_side=True, lower=True)
+    base = jnp.concatenate([w_top @ jnp.tril(g, -1), b_dot_v[k:] - w[k:] @ jnp.triu(g)])
+    w_dot = base - w * jnp.sum(w * base, axis=0)
+    norms_dot = jnp.diagonal(m) * norms
+    diagonal, diagonal_dot = jnp.diagonal(w_top), jnp.diagonal(w_dot[:k])
+    root_two = jnp.sqrt(2.0).astype(a_t.dtype)
+    pivots_dot = root_two * (norms_dot * jnp.abs(diagonal) + norms * jnp.sign(diagonal) * diagonal_dot)
+    return w_dot.T, pivots_dot, norms_dot
 
 
 def householder_pivots(
@@ -152,7 +239,15 @@ def _reflect(x, vectors, reflect, reverse: bool):
     r"""$H_1\cdots H_kx$ (`reverse`: the last reflection first) or $H_k\cdots H_1x$ by
     `reflect`."""
     if vectors.shape[0] > UNROLLED_REFLECTIONS:
-        return lax.scan(lambda x, w: (reflect(x, w), None), x, vectors, reverse=reverse)[0]
+        # The compact WY form (`_wy_factor`): two products and a triangular solve, whose
+        # derivatives in the vectors are as few operations, where a scan of k
+        # reflections is k sequential steps, and as many again transposed.
+        w = vectors.T
+        coefficients = w.T @ (x if x.ndim == 2 else x[:, None])
+        solved = lax.linalg.triangular_solve(
+            _wy_factor(w), coefficients, left_side=True, lower=False, transpose_a=not reverse
+        )
+        return x - (w @ solved if x.ndim == 2 else w @ solved[:, 0])
     for w in reversed(list(vectors)) if reverse else vectors:
         x = reflect(x, w)
     return x

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import nhjax
 import nhjax._householder
 from nhjax._householder import householder_frame, householder_frame_operator, householder_pivots, householder_signs
 
@@ -114,9 +115,10 @@ def _wide_constraints(q):
 
 
 def test_scanned_and_unrolled_reflections_agree(monkeypatch):
-    """Above `UNROLLED_REFLECTIONS` constraints the factorisation and the products with
-    the frame run as scans: the same values, products and derivatives as the unrolled
-    loops, to roundoff."""
+    """Above `UNROLLED_REFLECTIONS` constraints the factorisation runs as a scan,
+    differentiated in closed form, and the products with the frame in the compact WY
+    form: the same values, products and derivatives (first and second, of the pivots
+    too) as the unrolled reflections differentiated step by step, to roundoff."""
     assert nhjax._householder.UNROLLED_REFLECTIONS < 6
     q = jnp.linspace(-0.8, 1.1, 10)
     v = jnp.linspace(0.5, -1.5, 10)
@@ -138,11 +140,19 @@ def test_scanned_and_unrolled_reflections_agree(monkeypatch):
             times_matrix=operator.times(jnp.outer(w, v[:3])),
             derivative=jax.jacfwd(product)(x),
             reverse_derivative=jax.jacrev(product)(x),
+            second_derivative=jax.hessian(lambda y: product(y) @ w)(x),
+            times_derivative=jax.jacrev(lambda y: householder_frame_operator(_wide_constraints(y).T, signs).times(w))(x),
+            pivot_derivatives=jax.jacfwd(lambda y: householder_pivots(_wide_constraints(y).T, signs))(x),
         )
 
     scanned = jax.jit(everything)(q)
     monkeypatch.setattr(nhjax._householder, "UNROLLED_REFLECTIONS", 16)
+    # The factorisation and the products are jitted: without this, their traces for
+    # these shapes, made with the scans, would be reused (clearing the two functions'
+    # own caches is not enough: their traces are cached by JAX's tracing too).
+    jax.clear_caches()
     unrolled = jax.jit(everything)(q)
+    jax.clear_caches()
     for name in scanned:
         for a, b in zip(jax.tree.leaves(scanned[name]), jax.tree.leaves(unrolled[name])):
             np.testing.assert_allclose(a, b, atol=1e-14, err_msg=name)
@@ -150,3 +160,33 @@ def test_scanned_and_unrolled_reflections_agree(monkeypatch):
     np.testing.assert_allclose(_wide_constraints(q) @ frame, 0.0, atol=1e-14)
     np.testing.assert_allclose(frame.T @ frame, np.eye(4), atol=1e-14)
     np.testing.assert_allclose(scanned["transpose_times"], frame.T @ v, atol=1e-14)
+
+
+def test_gonzalez_r_with_many_constraints_keeps_its_invariants_and_the_unrolled_run():
+    """GONZALEZ-R with six constraints (the scanned factorisation with its closed-form
+    derivative, products in the compact WY form): energy and constraint to roundoff,
+    and the run with the reflections unrolled and differentiated step by step, to
+    roundoff over 40 steps."""
+    system = nhjax.NonholonomicSystem(
+        lambda q, p, args: 0.5 * p @ p + jnp.sum(1 - jnp.cos(q[1:] - q[:-1])) + 0.5 * q @ q,
+        lambda q, args: _wide_constraints(q),
+    )
+    q0 = jnp.linspace(-0.4, 0.5, 10)
+    y0 = (q0, system.project_momentum(q0, jnp.cos(jnp.arange(10.0))))
+
+    def run():
+        return jax.jit(lambda y: nhjax.integrate(system, nhjax.GonzalezR(), y, 0.1, 40))(y0)
+
+    scanned = run()
+    jax.clear_caches()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(nhjax._householder, "UNROLLED_REFLECTIONS", 16)
+        unrolled = run()
+    jax.clear_caches()
+    assert bool(jnp.all(jnp.isfinite(scanned.energy)))
+    np.testing.assert_allclose(scanned.energy, scanned.energy[0], rtol=0, atol=1e-14 * float(jnp.abs(scanned.energy[0])))
+    assert float(jnp.max(jnp.abs(scanned.constraint))) < 1e-14
+    for a, b in zip(jax.tree.leaves(scanned.ys), jax.tree.leaves(unrolled.ys)):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    # The motion is not trivial: the run would not show a wrong frame otherwise.
+    assert float(jnp.max(jnp.abs(scanned.ys[0][-1] - q0))) > 0.1
