@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import nhjax
 import nhjax._householder
 from nhjax._householder import householder_frame, householder_frame_operator, householder_pivots, householder_signs
 
@@ -114,7 +113,21 @@ def _wide_constraints(q):
     return a.at[rows, rows + 4].set(jnp.sin(q[rows + 2]) * q[rows + 1]).at[rows, 9].add(0.3 * q[0])
 
 
-def test_scanned_and_unrolled_reflections_agree(monkeypatch):
+def _with_unrolled_reflections(function):
+    """`function()` with every loop over reflections unrolled. The factorisation and the
+    products are jitted, so JAX's caches are cleared on the way in and out: their traces
+    for the same shapes would be reused otherwise (clearing the two functions' own
+    caches is not enough: their traces are cached by JAX's tracing too)."""
+    jax.clear_caches()
+    try:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(nhjax._householder, "UNROLLED_REFLECTIONS", 16)
+            return function()
+    finally:
+        jax.clear_caches()
+
+
+def test_scanned_and_unrolled_reflections_agree():
     """Above `UNROLLED_REFLECTIONS` constraints the factorisation runs as a scan,
     differentiated in closed form, and the products with the frame in the compact WY
     form: the same values, products and derivatives (first and second, of the pivots
@@ -146,13 +159,7 @@ def test_scanned_and_unrolled_reflections_agree(monkeypatch):
         )
 
     scanned = jax.jit(everything)(q)
-    monkeypatch.setattr(nhjax._householder, "UNROLLED_REFLECTIONS", 16)
-    # The factorisation and the products are jitted: without this, their traces for
-    # these shapes, made with the scans, would be reused (clearing the two functions'
-    # own caches is not enough: their traces are cached by JAX's tracing too).
-    jax.clear_caches()
-    unrolled = jax.jit(everything)(q)
-    jax.clear_caches()
+    unrolled = _with_unrolled_reflections(lambda: jax.jit(everything)(q))
     for name in scanned:
         for a, b in zip(jax.tree.leaves(scanned[name]), jax.tree.leaves(unrolled[name])):
             np.testing.assert_allclose(a, b, atol=1e-14, err_msg=name)
@@ -178,11 +185,7 @@ def test_gonzalez_r_with_many_constraints_keeps_its_invariants_and_the_unrolled_
         return jax.jit(lambda y: nhjax.integrate(system, nhjax.GonzalezR(), y, 0.1, 40))(y0)
 
     scanned = run()
-    jax.clear_caches()
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(nhjax._householder, "UNROLLED_REFLECTIONS", 16)
-        unrolled = run()
-    jax.clear_caches()
+    unrolled = _with_unrolled_reflections(run)
     assert bool(jnp.all(jnp.isfinite(scanned.energy)))
     np.testing.assert_allclose(scanned.energy, scanned.energy[0], rtol=0, atol=1e-14 * float(jnp.abs(scanned.energy[0])))
     assert float(jnp.max(jnp.abs(scanned.constraint))) < 1e-14
