@@ -198,9 +198,17 @@ class HouseholderFrame(eqx.Module):
     r"""The frame $X = H_1\cdots H_k[0; I_m]$ of $\ker A$ as its $k$ unit Householder
     vectors $w_j$ (rows of `vectors`, zero above their pivot), for products with $X$
     and $X^T$ without forming it: $Xv = H_1\cdots H_k[0; v]$ and
-    $X^Tv = [0\ I_m]H_k\cdots H_1v$, $k$ reflections of a vector each."""
+    $X^Tv = [0\ I_m]H_k\cdots H_1v$, $k$ reflections of a vector each, or above
+    `UNROLLED_REFLECTIONS` the compact WY form $H_1\cdots H_k = I - WT^{-1}W^T$ with
+    `factor` $= T$ (`_wy_factor`), formed once for every product with the frame and
+    their derivatives (`None` below it)."""
 
     vectors: Float[Array, "k n"]
+    factor: Float[Array, "k k"] | None
+
+    def __init__(self, vectors: Float[Array, "k n"]):
+        self.vectors = vectors
+        self.factor = _wy_factor(vectors.T) if vectors.shape[0] > UNROLLED_REFLECTIONS else None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -211,11 +219,16 @@ class HouseholderFrame(eqx.Module):
         """$Xv$, for a vector or a matrix `v`."""
         k = self.vectors.shape[0]
         x = jnp.concatenate([jnp.zeros((k, *v.shape[1:]), v.dtype), v])
+        if self.factor is not None:
+            return _wy_reflect(x, self.vectors, self.factor, reverse=True)
         return _reflect(x, self.vectors, _reflected, reverse=True)
 
     def transpose_times(self, v: Float[Array, " n"]) -> Float[Array, " m"]:
         """$X^Tv$."""
-        return _reflect(v, self.vectors, _reflected_vector, reverse=False)[self.vectors.shape[0] :]
+        k = self.vectors.shape[0]
+        if self.factor is not None:
+            return _wy_reflect(v, self.vectors, self.factor, reverse=False)[k:]
+        return _reflect(v, self.vectors, _reflected_vector, reverse=False)[k:]
 
     def matrix(self) -> Float[Array, "n m"]:
         """$X$ itself."""
@@ -236,21 +249,23 @@ def _reflected_vector(v, w):
 
 @functools.partial(jax.jit, static_argnames=("reflect", "reverse"))
 def _reflect(x, vectors, reflect, reverse: bool):
-    r"""$H_1\cdots H_kx$ (`reverse`: the last reflection first) or $H_k\cdots H_1x$ by
-    `reflect`."""
-    if vectors.shape[0] > UNROLLED_REFLECTIONS:
-        # The compact WY form (`_wy_factor`): two products and a triangular solve, whose
-        # derivatives in the vectors are as few operations, where a scan of k
-        # reflections is k sequential steps, and as many again transposed.
-        w = vectors.T
-        coefficients = w.T @ (x if x.ndim == 2 else x[:, None])
-        solved = lax.linalg.triangular_solve(
-            _wy_factor(w), coefficients, left_side=True, lower=False, transpose_a=not reverse
-        )
-        return x - (w @ solved if x.ndim == 2 else w @ solved[:, 0])
+    r"""$H_1\cdots H_kx$ (`reverse`: the last reflection first) or $H_k\cdots H_1x$, one
+    reflection (`reflect`) after another."""
     for w in reversed(list(vectors)) if reverse else vectors:
         x = reflect(x, w)
     return x
+
+
+@functools.partial(jax.jit, static_argnames=("reverse",))
+def _wy_reflect(x, vectors, factor, reverse: bool):
+    r"""$H_1\cdots H_kx = x - WT^{-1}W^Tx$ (`reverse`) or $H_k\cdots H_1x =
+    x - WT^{-T}W^Tx$, with `factor` $= T$ (`_wy_factor`): two products and a triangular
+    solve, whose derivatives in the vectors are as few operations, where a scan of k
+    reflections is k sequential steps, and as many again transposed."""
+    w = vectors.T
+    coefficients = w.T @ (x if x.ndim == 2 else x[:, None])
+    solved = lax.linalg.triangular_solve(factor, coefficients, left_side=True, lower=False, transpose_a=not reverse)
+    return x - (w @ solved if x.ndim == 2 else w @ solved[:, 0])
 
 
 class FormedFrame(eqx.Module):
