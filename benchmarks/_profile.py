@@ -35,7 +35,8 @@ def per_call_us(function, x, repeats: int = 200) -> float:
 def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int = 200) -> dict:
     """µs of each part of one step of `method` (an `nhjax.AbstractMethod`) from `y0`:
     `setup` (state to unknowns, predictor), `chord_matrix` (the method's Jacobian of the
-    simplified residual at the guess, and its inverse: once per step), `residual` (once
+    simplified residual at the guess, and its inverse, as the method forms them
+    (`AbstractMethod.chord_matrix`): once per step), `residual` (once
     per root-finder iteration) and `complete` (unknowns to the new state). `model` is
     setup + chord_matrix + iterations x residual + complete. For a method with its own
     `chord_jacobian`, `chord_matrix_by_jacfwd` is the generic `jax.jacfwd` it replaces."""
@@ -49,7 +50,7 @@ def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int
 
     parts = dict(
         setup=per_call_us(setup, jnp.zeros((1,), q_or_x.dtype), repeats),
-        chord_matrix=per_call_us(lambda u: chord_inverse(method.chord_jacobian(u, data)), guess, repeats),
+        chord_matrix=per_call_us(lambda u: method.chord_matrix(u, data), guess, repeats),
         residual=per_call_us(lambda u: method.residual(u, data), guess, repeats),
         complete=per_call_us(lambda u: jax.tree.leaves(method.complete(u, data)[0]), guess, repeats),
     )

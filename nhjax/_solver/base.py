@@ -348,14 +348,14 @@ class AbstractMethod(diffrax.AbstractSolver):
     def chord_jacobian(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, "u u"]:
         return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
-    def chord_matrix_inverse(
-        self, jacobian: Float[Array, "u u"], unknowns: Float[Array, " u"], data: Any
-    ) -> Float[Array, "u u"]:
-        """The inverse of the chord matrix `jacobian` (`chord_jacobian` at `unknowns`), by
-        default `nhjax._solver.chord.chord_inverse`; a method whose matrix has structure
-        may invert it by that structure."""
-        del unknowns, data
-        return chord_inverse(jacobian)
+    def chord_matrix(
+        self, unknowns: Float[Array, " u"], data: Any
+    ) -> tuple[Float[Array, "u u"], Float[Array, "u u"]]:
+        """The chord matrix at `unknowns` (`chord_jacobian`) and its inverse, by default
+        `nhjax._solver.chord.chord_inverse`; a method whose matrix has structure may
+        form and invert it by that structure."""
+        jacobian = self.chord_jacobian(unknowns, data)
+        return jacobian, chord_inverse(jacobian)
 
     def complete(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], PyTree]:
         raise NotImplementedError
@@ -565,9 +565,7 @@ class AbstractMethod(diffrax.AbstractSolver):
 
     def _fresh_chord(self, operands):
         """The chord matrix at the guess, and its inverse."""
-        guess, data = operands
-        jacobian = self.chord_jacobian(guess, data)
-        return jacobian, self.chord_matrix_inverse(jacobian, guess, data)
+        return self.chord_matrix(*operands)
 
     def _chord_root(self, root_finder, guess, data, jacobian, inverse) -> ChordSolution:
         resolution = self.resolution(data)

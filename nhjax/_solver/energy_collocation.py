@@ -334,21 +334,28 @@ class EnergyPreservingCollocation(AbstractMethod):
         r"""$I - h\,(a \otimes F)$ in the scaled unknowns, $F$ the derivative of the field
         at the predicted midpoint $x_0 + \tfrac12\sum_jb_jZ_j$ (see the class
         docstring)."""
-        a = jnp.asarray(self.tableau().a, dtype=u.dtype)
-        return jnp.eye(u.shape[0], dtype=u.dtype) - data.h * jnp.kron(a, self._scaled_field_jacobian(u, data))
+        return self._chord_jacobian_of(self._scaled_field_jacobian(u, data), data.h)
 
-    def chord_matrix_inverse(self, jacobian, u, data):
-        r"""The inverse of $I - h\,(a \otimes F)$ by the eigenvalues $\lambda_k$ of $a$:
+    def _chord_jacobian_of(self, scaled, h):
+        """`chord_jacobian` from $F$ in the scaled unknowns."""
+        a = jnp.asarray(self.tableau().a, dtype=scaled.dtype)
+        return jnp.eye(a.shape[0] * scaled.shape[0], dtype=scaled.dtype) - h * jnp.kron(a, scaled)
+
+    def chord_matrix(self, u, data):
+        r"""`chord_jacobian` and its inverse, from one $F$. The inverse by the
+        eigenvalues $\lambda_k$ of $a$:
         $\sum_k (v_k w_k^T) \otimes (I - h\lambda_kF)^{-1}$ ($v_k$, $w_k^T$ the columns
         of $V$ and rows of $V^{-1}$), one complex $N \times N$ inverse per real
         eigenvalue or conjugate pair (the conjugate's block is the conjugate), against
         $(sN)^3$ work by elimination. Where $sN$ is within `UNROLL_LIMIT`, the unrolled
         real elimination (`chord_inverse`) is the cheaper of the two on XLA:CPU, and is
         used. Cut from differentiation, as the chord matrix is."""
+        scaled = self._scaled_field_jacobian(u, data)
+        jacobian = self._chord_jacobian_of(scaled, data.h)
         if u.shape[0] <= UNROLL_LIMIT:
-            return chord_inverse(jacobian)
+            return jacobian, chord_inverse(jacobian)
         tableau = self.tableau()
-        scaled = lax.stop_gradient(self._scaled_field_jacobian(u, data))
+        scaled = lax.stop_gradient(scaled)
         complex_dtype = jnp.result_type(scaled.dtype, jnp.complex64)
         h = lax.stop_gradient(data.h)
         identity = jnp.eye(scaled.shape[0], dtype=complex_dtype)
@@ -365,7 +372,7 @@ class EnergyPreservingCollocation(AbstractMethod):
         vectors = jnp.asarray(tableau.eigenvectors, dtype=complex_dtype)
         inverse_vectors = jnp.asarray(tableau.eigenvectors_inverse, dtype=complex_dtype)
         inverse = jnp.einsum("ik,kj,kab->iajb", vectors, inverse_vectors, stacked).real
-        return inverse.reshape(u.shape[0], u.shape[0]).astype(u.dtype)
+        return jacobian, inverse.reshape(u.shape[0], u.shape[0]).astype(u.dtype)
 
     def reuses_chord_matrix(self) -> bool:
         """`reuse_chord_matrix` (see `nhjax.AbstractMethod.reuses_chord_matrix`)."""
