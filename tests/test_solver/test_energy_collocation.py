@@ -115,6 +115,27 @@ def test_the_tableau_is_the_gauss_method():
     np.testing.assert_allclose(three.quadrature_weights @ g(sigma), exact, atol=1e-14)
 
 
+@pytest.mark.parametrize("order", [4, 6, 8])
+def test_the_chord_matrix_comes_with_its_inverse(order):
+    """`chord_matrix` returns I - h (a x F) and its inverse: by the Gauss matrix's
+    eigenvalues on the quartic's reduced form (2, 3 and 4 stages of 13 unknowns each,
+    above the unrolled elimination's limit), by elimination on the gearbox's (5 each,
+    within it up to order 6). The matrix is the one `chord_jacobian` forms."""
+    quartic, gearbox = nh.examples.chaotic_quartic(3), nh.examples.gearbox()
+    method = nh.EnergyPreservingCollocation(order)
+    for system, y0 in (
+        (quartic.canonical, quartic.from_adapted(quartic.initial_state(0.7))),
+        (gearbox.canonical, gearbox.random_initial_state(jax.random.key(0))),
+    ):
+        h = jnp.asarray(0.25)
+        guess, data = method.setup(system, 0.0, h, y0, None, method.initial_carry(system, y0, None))
+        guess = guess + 0.01  # away from the no-motion guess of a first step
+        jacobian, inverse = method.chord_matrix(guess, data)
+        np.testing.assert_array_equal(jacobian, method.chord_jacobian(guess, data))
+        assert float(jnp.max(jnp.abs(jacobian - jnp.eye(guess.shape[0])))) > 0.1
+        np.testing.assert_allclose(inverse @ jacobian, jnp.eye(guess.shape[0]), rtol=0, atol=1e-13)
+
+
 def test_float32_and_per_trajectory_codes():
     gearbox = nh.examples.gearbox()
     check_float32(nh.EnergyPreservingCollocation(4), gearbox, gearbox.random_initial_state(jax.random.key(0)))
