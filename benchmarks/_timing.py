@@ -106,7 +106,7 @@ def per_step(system, method, y0, steps, repeats, args=None, dt=0.1):
 
 def bare_loop(system, method, steps, args=None, dt=0.1):
     """A run of `steps` steps of `method` strung together by a bare `lax.scan` of the
-    method's step (`method.advance`), without diffrax's loop: a function of the start
+    method's step (`method.advance`), without `nhjax.integrate`'s loop: a function of the start
     that returns the final state."""
     import jax.numpy as jnp
 
@@ -127,7 +127,7 @@ def bare_loop(system, method, steps, args=None, dt=0.1):
 
 def bare_loop_per_step(system, method, y0, steps, repeats, args=None, dt=0.1) -> float:
     """Median µs/step of the same steps as `per_step` strung together by `bare_loop`:
-    what diffrax's loop costs is the difference."""
+    what `nhjax.integrate`'s loop costs is the difference."""
     _, seconds = run_and_time(jax.jit(bare_loop(system, method, steps, args, dt)), y0, repeats=repeats)
     return seconds / steps * 1e6
 

@@ -11,7 +11,7 @@
 - A vmapped batch of 200 gearbox trajectories: trajectory-steps/s against the vmapped
   yardstick, target at most 2x slower, and no trajectory failing; the quartic batch
   beside it.
-- What diffrax's loop adds: the gearbox steps strung together by a bare `lax.scan`.
+- What `nhjax.integrate`'s loop adds: the gearbox steps strung together by a bare `lax.scan`.
 - Compile times, root-finder iterations per step, and the paper's full gearbox run
   (t in [0, 50000], 500 000 steps) with its energy and constraint errors.
 
@@ -172,7 +172,7 @@ def main():
     print(f"gearbox GONZALEZ-R : {gr_us:.2f} µs/step, {gearbox_results['gonzalez_r']['ratio_to_yardstick']:.2f}x "
           f"the yardstick (target <= 2.5), {gearbox_results['gonzalez_r']['numpy_speedup']:.0f}x NumPy + fsolve "
           f"(target >= 100), {iterations:.2f} iterations/step, compile {compile_s:.1f} s")
-    print(f"   the same steps in a bare lax.scan, without diffrax's loop: {bare_us:.2f} µs/step")
+    print(f"   the same steps in a bare lax.scan, without nh.integrate's loop: {bare_us:.2f} µs/step")
     print(f"   central differences {finite_us:.2f} µs/step; GONZALEZ-F {direct_us:.2f} µs/step")
     print(f"quartic n = 3      : {quartic_us:.2f} µs/step, {quartic_results['ratio']:.2f}x DiscreteGradient on the "
           f"reduced form (target <= 3), {quartic_results['numpy_speedup']:.0f}x NumPy + fsolve (target >= 100)")

@@ -1,15 +1,16 @@
-"""How steps are strung together: fixed steps of any method through
-`diffrax.diffeqsolve` (`integrate`). Beside it: what a run returns (`nhjax._solution`),
-the checks of its arguments (`nhjax._arguments`), its step times (`nhjax._step_times`),
-how it is differentiated (`nhjax._adjoints`), and adaptive steps
-(`nhjax._integrate_adaptive`).
+"""How steps are strung together: fixed steps of any method (`integrate`), by nhjax's own
+loop (`nhjax._fixed_steps`) or, with a progress meter or a diffrax adjoint, by
+`diffrax.diffeqsolve`; the two give the same states, codes and statistics. Beside it:
+what a run returns (`nhjax._solution`), the checks of its arguments
+(`nhjax._arguments`), its step times (`nhjax._step_times`), how it is differentiated
+(`nhjax._adjoints`), and adaptive steps (`nhjax._integrate_adaptive`).
 
 **What a step costs.** For the implicit methods, the method's root find: for GONZALEZ-R
 the chord matrix and a few residuals (see `nhjax._solver.gonzalez_r`); around it the
-loop adds diffrax's bookkeeping and, at each save, the energy and constraint residual.
-Outside the loop, diffrax's end-time clipping and the checks of the start and the saves
-cost compile time only. `python benchmarks/gonzalez_r.py` times the loop against a bare
-`lax.scan` of the same steps.
+loop adds its bookkeeping and, at each save, the energy and constraint residual. The
+checks of the start and of the saves cost compile time only, as does diffrax's
+end-time clipping where diffrax's loop runs. `python benchmarks/gonzalez_r.py` times
+the loop against a bare `lax.scan` of the same steps.
 
 Derivatives of a run with an nhjax method come from its stored roots
 (`nhjax._replay`): the run once by the root finder, keeping each step's root, then per
@@ -34,11 +35,11 @@ from jaxtyping import Array, PyTree
 
 from ._adjoints import checked_adjoint, default_adjoint, replays_derivatives
 from ._arguments import args_result, check_args, check_step_counts, check_step_size, in_state_dtype, state_dtype, trace_floats
+from ._fixed_steps import fixed_step_run
 from ._replay import replayed_run
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from ._ledger import observe, run_start
 from ._solution import method_outcome, nonfinite_saves, raise_failure, Solution, solution_from_saves
-from ._solver.base import AbstractMethod
 from ._step_times import FixedStepTimes
 from ._system import AbstractSystem
 
@@ -61,9 +62,11 @@ def integrate(
 ) -> Solution:
     """Integrate `system` with `method` over `n_steps` steps of size `dt` from `t0`.
 
-    The time loop is `diffrax.diffeqsolve` with the steps fixed exactly at
-    `t0 + k dt` (`FixedStepTimes`), saving the initial state and every `save_every`-th
-    step (`diffrax.SaveAt(steps=...)`). Works under `jax.jit` and `jax.vmap` (e.g. over
+    The steps land exactly at `t0 + k dt` (`nhjax._step_times.step_time`); the run
+    saves the initial state and every `save_every`-th step. The time loop is nhjax's
+    own scan of the method's steps (`nhjax._fixed_steps`), or, with `progress=True` or
+    a diffrax `adjoint`, `diffrax.diffeqsolve` with the same steps, with the same
+    results. Works under `jax.jit` and `jax.vmap` (e.g. over
     a batch of `y0`), and compiles once per (system, method, shapes, static arguments):
     `dt`, `t0`, `y0` and float leaves of `args` are traced.
 
@@ -180,12 +183,11 @@ def describe_fixed_step_failure(solution: Solution, dt, t0, n_steps) -> str:
 
 
 def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps, *, max_steps, save_every, progress):
-    """The run, differentiated by replay from its stored roots (`nhjax._replay`) where
-    `replays_derivatives` says so, otherwise through diffrax's loop with `adjoint` (or
-    `default_adjoint`'s choice)."""
+    """The run, differentiated through diffrax's loop with a given `adjoint`, or else by
+    nhjax's own rule (`_integrate_differentiably`)."""
     static = dict(max_steps=max_steps, save_every=save_every)
-    if adjoint is None and isinstance(method, AbstractMethod):
-        return _integrate_replaying_derivatives(
+    if adjoint is None:
+        return _integrate_with_derivative_rule(
             system, method, y0, dt, t0, args, check_constraint, n_steps, progress=progress, **static
         )
     return _integrate_by_diffrax(
@@ -194,23 +196,28 @@ def _integrate(system, method, y0, dt, t0, args, check_constraint, adjoint, n_st
 
 
 @eqx.filter_custom_jvp
-def _integrate_replaying_derivatives(
+def _integrate_with_derivative_rule(
     system, method, y0, dt, t0, args, check_constraint, n_steps, *, max_steps, save_every, progress
 ):
-    """The run by diffrax's loop, with the derivatives of `_integrate_differentiably`.
+    """The run by nhjax's fixed-step loop (`nhjax._fixed_steps`; diffrax's loop for a
+    progress meter), with the derivatives of `_integrate_differentiably`.
 
     The derivative rule sits outside the compiled run, so that a derivative program
     traces only the rule: JAX traces a jitted function's body whole before it
     differentiates it, and the loop it would trace here is not differentiated."""
-    adjoint = diffrax.RecursiveCheckpointAdjoint()  # never differentiated: the rule replaces it
-    return _integrate_by_diffrax(
-        system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps,
-        max_steps=max_steps, save_every=save_every, progress=progress,
+    if progress:
+        adjoint = diffrax.RecursiveCheckpointAdjoint()  # never differentiated: the rule replaces it
+        return _integrate_by_diffrax(
+            system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps,
+            max_steps=max_steps, save_every=save_every, progress=progress,
+        )
+    return _integrate_by_fixed_steps(
+        system, method, y0, dt, t0, args, check_constraint, n_steps, max_steps=max_steps, save_every=save_every
     )
 
 
-@_integrate_replaying_derivatives.def_jvp
-def _integrate_replaying_derivatives_jvp(primals, tangents, *, max_steps, save_every, progress):
+@_integrate_with_derivative_rule.def_jvp
+def _integrate_with_derivative_rule_jvp(primals, tangents, *, max_steps, save_every, progress):
     del progress
     differentiable = functools.partial(_integrate_differentiably, max_steps=max_steps, save_every=save_every)
     return eqx.filter_jvp(differentiable, primals, tangents)
@@ -218,8 +225,8 @@ def _integrate_replaying_derivatives_jvp(primals, tangents, *, max_steps, save_e
 
 @eqx.filter_jit
 def _integrate_differentiably(system, method, y0, dt, t0, args, check_constraint, n_steps, *, max_steps, save_every):
-    """The run of an nhjax method as its derivatives see it: replayed from its stored
-    roots (`nhjax._replay.replayed_run`) where they fit the budget
+    """The run as its derivatives see it: an nhjax method's run replayed from its
+    stored roots (`nhjax._replay.replayed_run`) where they fit the budget
     (`replays_derivatives`), otherwise diffrax's loop with `default_adjoint`."""
     static = dict(max_steps=max_steps, save_every=save_every)
     if replays_derivatives(system, method, y0, args, dt, max_steps, bounded=not isinstance(n_steps, int)):
@@ -234,11 +241,15 @@ def _integrate_differentiably(system, method, y0, dt, t0, args, check_constraint
 def _integrate_by_diffrax(
     system, method, y0, dt, t0, args, check_constraint, adjoint, n_steps, *, max_steps, save_every, progress
 ):
-    if adjoint is None:  # chosen here, once per compilation
-        adjoint = default_adjoint(system, method, y0, args, dt, max_steps)
     static = dict(max_steps=max_steps, save_every=save_every)
     run = functools.partial(_diffrax_run, adjoint=adjoint, progress=progress, **static)
     return _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_steps, **static)
+
+
+@eqx.filter_jit
+def _integrate_by_fixed_steps(system, method, y0, dt, t0, args, check_constraint, n_steps, *, max_steps, save_every):
+    static = dict(max_steps=max_steps, save_every=save_every)
+    return _run_from_start(functools.partial(fixed_step_run, **static), system, method, y0, dt, t0, args, check_constraint, n_steps, **static)
 
 
 def _diffrax_run(system, method, y_start, dt, t0, args, n_steps, *, adjoint, max_steps, save_every, progress):

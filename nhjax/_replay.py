@@ -6,7 +6,7 @@ run needs, per step, only the linearisation of $u_k(y_k)$ by the implicit functi
 theorem, $\dot u_k = -(\partial_u F)^{-1}\partial_y F\,\dot y_k$, at the root; the
 root finder's iterations, which diffrax's checkpointed reverse loop runs again from
 every checkpoint, contribute nothing to it. So a run's derivatives come from
-`replayed_run`, which `nhjax.integrate` differentiates in place of its diffrax loop
+`replayed_run`, which `nhjax.integrate` differentiates in place of its loop
 (its own derivative rule, `jax.custom_jvp`, runs the loop without derivatives and
 `replayed_run` with them):
 
@@ -21,11 +21,11 @@ every checkpoint, contribute nothing to it. So a run's derivatives come from
   never a root find.
 
 The replay repeats the recorded step's arithmetic on the same values, so its states
-are the run's states; it steps to the same times $t_0 + k\,\Delta t$ as
-`nhjax._step_times.FixedStepTimes`, reports the same codes and statistics as the diffrax
-loop (a failed step is the last one taken; the saves after it are NaN, their times
-inf), and a trajectory that failed has NaN derivatives (`nhjax.integrate` gates
-them). `python benchmarks/gradients.py` measures the derivative against the forward
+are the run's states; it steps to the same times $t_0 + k\,\Delta t$
+(`nhjax._step_times.step_time`), reports the same codes and statistics as the run's
+loop, `nhjax._fixed_steps` (a failed step is the last one taken; the saves after it
+are NaN, their times inf), and a trajectory that failed has NaN derivatives
+(`nhjax.integrate` gates them). `python benchmarks/gradients.py` measures the derivative against the forward
 run and against diffrax's checkpointed adjoints.
 """
 
@@ -38,6 +38,7 @@ import jax.numpy as jnp
 from ._ledger import observe, unledgered
 from ._results import RESULTS
 from ._solver.base import AbstractMethod
+from ._step_times import save_times, step_size, step_time
 from ._system import AbstractSystem
 
 
@@ -68,32 +69,22 @@ def _first_carry_and_unknowns(system, method, y0, dt, args):
     return carry, method.setup(system, jnp.zeros_like(dt), dt, y0, args, carry)[0]
 
 
-def _step_time(t0, dt, k):
-    """$t_k$, rounded as `nhjax._step_times.FixedStepTimes` rounds it."""
-    return t0 + dt * k.astype(dt.dtype)
-
-
-def _step_size(t0, dt, k):
-    """$h_k = t_{k+1} - t_k$, the step diffrax's loop hands the method."""
-    return _step_time(t0, dt, k + 1) - _step_time(t0, dt, k)
-
-
 def _record(system, method, y_start, dt, t0, args, n_steps, max_steps):
     """The run's steps by the root finder, without derivatives: each step's root, and
     whether it was taken and succeeded, and the final method state. A failed step is
-    the last one taken, as in diffrax's loop: the later ones are skipped, their roots
+    the last one taken, as in the run's loop: the later ones are skipped, their roots
     NaN, as are those of the steps after the end (`n_steps` of `max_steps`)."""
     y_start, dt, t0, args = lax.stop_gradient((y_start, dt, t0, args))
-    state = method.init(system, t0, _step_time(t0, dt, jnp.array(1)), y_start, args)
+    state = method.init(system, t0, step_time(t0, dt, jnp.array(1)), y_start, args)
     root_shape = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y_start, dt, args)[1])
 
     def step(carry, k):
         y, state = carry
-        h = _step_size(t0, dt, k)
+        h = step_size(t0, dt, k)
         running = (state.failure == RESULTS.successful) & (k < n_steps)
 
         def take(_):
-            y1, state1, failure, root = method.solve_step(system, _step_time(t0, dt, k), h, y, args, state)
+            y1, state1, failure, root = method.solve_step(system, step_time(t0, dt, k), h, y, args, state)
             failed = failure != RESULTS.successful
             y1 = jax.tree.map(lambda x: jnp.where(failed, jnp.nan, x), y1)
             return (y1, state1), (root, ~failed)
@@ -129,14 +120,14 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
         y, carry, last = state
         k, root, success = inputs
         if isinstance(n_steps, int):  # static: every step is in the run
-            y1, carry1 = method.replay_step(system, _step_time(t0, dt, k), _step_size(t0, dt, k), y, args, carry, root)
+            y1, carry1 = method.replay_step(system, step_time(t0, dt, k), step_size(t0, dt, k), y, args, carry, root)
             y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
             return (y1, carry1, last), None
         in_run = k < n_steps
         replayed = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y, carry, root, k), last)
         y_k, carry_k, root_k, index = replayed
         y1, carry1 = method.replay_step(
-            system, _step_time(t0, dt, index), _step_size(t0, dt, index), y_k, args, carry_k, root_k
+            system, step_time(t0, dt, index), step_size(t0, dt, index), y_k, args, carry_k, root_k
         )
         y1 = jax.tree.map(lambda x: jnp.where(success, x, jnp.nan), y1)
         y1, carry1 = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y1, carry1), (y, carry))
@@ -156,24 +147,17 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
 
 
-def _save_times(dt, t0, n_steps, n_saves: int, *, save_every):
-    """The save times t0 + min(i s, n) dt; `nhjax._integrate` sets inf for those
-    after a failure (diffrax's fill)."""
-    steps = jnp.minimum(save_every * jnp.arange(n_saves + 1), n_steps)
-    return _step_time(t0, dt, steps)
-
-
 def replayed_run(system, method, y_start, dt, t0, args, n_steps, *, max_steps: int, save_every: int):
     """The run of `n_steps` fixed steps, saved as a run of `max_steps`, as
-    `nhjax.integrate`'s diffrax loop returns it, `(ts, (ys, observed), final method
+    `nhjax.integrate`'s loop returns it, `(ts, (ys, observed), final method
     state, the run's code, number of steps taken)`, computed for derivatives: the steps
     by the root finder without derivatives (`_record`), then the saves of the steps
     replayed from their roots, which carry the derivatives (see the module docstring)."""
     roots, succeeded, taken, final_state = _record(system, method, y_start, dt, t0, args, n_steps, max_steps)
-    ts = _save_times(dt, t0, n_steps, max_steps // save_every, save_every=save_every)
+    ts = save_times(t0, dt, n_steps, max_steps // save_every, save_every=save_every)
     saved = _replayed_saves(
         system, method, y_start, dt, t0, args, roots, succeeded, n_steps, save_every=save_every
     )
-    # The run's code from the method's state, as the diffrax loop reports it (a step
+    # The run's code from the method's state, as the run's loop reports it (a step
     # that fails is the loop's only way to stop early).
     return ts, saved, final_state, final_state.failure, jnp.sum(taken, dtype=int)

@@ -462,3 +462,66 @@ def test_the_readme_lists_every_code_nhjax_sets():
     own = set(nh.RESULTS._name_to_item) - set(diffrax.RESULTS._name_to_item)
     for name in sorted(own | {"successful", "max_steps_reached"}):
         assert f"| `{name}` |" in table, name
+
+
+def _loop_cases():
+    """(system, method, start, dt, n_steps, args, max_steps) for each kind of run the
+    two loops string together: tuple and array states, an nhjax method, a composition,
+    a wrapped diffrax solver and a plain one, a forced system's ledger, a batch in which
+    one trajectory fails, and a traced number of steps up to a bound."""
+    gearbox = nh.examples.gearbox()
+    q0, p0 = gearbox.start("canonical")
+    drive = nh.examples.differential_drive()
+    suslov = nh.examples.suslov()
+    return {
+        "one of two failing": (_fragile_oscillator(), METHOD, jnp.array([[0.0, 1.0], [0.0, 3.0]]), 0.1, 40, None, None),
+        "GONZALEZ-R, 17 of 24 steps": (gearbox.canonical, nh.GonzalezR(), (q0, p0), 0.1, 17, gearbox.args, 24),
+        "composition": (gearbox.canonical, nh.Composition(nh.GonzalezR(), 4), (q0, p0), 0.2, 12, gearbox.args, None),
+        "projected Dopri8": (gearbox.canonical, nh.Projection(diffrax.Dopri8()), (q0, p0), 0.2, 12, gearbox.args, None),
+        "Tsit5": (gearbox.canonical, diffrax.Tsit5(), (q0, p0), 0.2, 12, gearbox.args, None),
+        "forced": (drive.canonical, nh.GonzalezR(), drive.start("canonical"), 0.05, 12, drive.args, None),
+        "GONZALEZ, adapted": (suslov.adapted, nh.DiscreteGradient(), suslov.start("adapted"), 0.1, 12, suslov.args, None),
+    }
+
+
+@pytest.mark.parametrize("case", list(_loop_cases()))
+def test_nhjax_loop_and_diffrax_loop_return_the_same_run(case):
+    """`nhjax.integrate` strings the steps together by its own loop, and by
+    `diffrax.diffeqsolve` where a diffrax adjoint asks for it: the same states, save
+    times, energies, codes and step counts, NaN and infinite in the same places after a
+    failure. Finite values agree to roundoff and root-finder iterations nearly: two
+    programs compiled apart may round differently, and an iteration near the
+    tolerance may then stop one iteration apart."""
+    system, method, y0, dt, n_steps, args, max_steps = _loop_cases()[case]
+
+    def run(y0, adjoint):
+        return nh.integrate(
+            system, method, y0, dt, n_steps, args=args, save_every=4 if max_steps else 2,
+            throw=False, adjoint=adjoint, max_steps=max_steps,
+        )
+
+    batched = case == "one of two failing"
+    if batched:
+        run = jax.vmap(run, (0, None))
+    own, theirs = run(y0, None), run(y0, diffrax.RecursiveCheckpointAdjoint())
+    if batched:
+        np.testing.assert_array_equal(own.result == nh.RESULTS.successful, [True, False])
+        assert 1 < int(own.stats["num_steps"][1]) < n_steps
+    else:
+        assert own.result == nh.RESULTS.successful
+    assert jax.tree.structure(own) == jax.tree.structure(theirs)
+    iterations = {"root_find_steps", "max_root_find_steps", "substep_root_find_steps"}
+    for name in iterations & {name for name, value in own.stats.items() if value is not None}:
+        got, want = np.asarray(own.stats[name]), np.asarray(theirs.stats[name])
+        np.testing.assert_allclose(got, want, rtol=0.05, atol=1)
+    own, theirs = (eqx.tree_at(lambda s: s.stats, s, {k: v for k, v in s.stats.items() if k not in iterations}) for s in (own, theirs))
+    for got, want in zip(jax.tree.leaves(own), jax.tree.leaves(theirs)):
+        got, want = np.asarray(got), np.asarray(want)
+        assert got.shape == want.shape and got.dtype == want.dtype
+        if not np.issubdtype(want.dtype, np.floating):
+            np.testing.assert_array_equal(got, want)
+            continue
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+        finite = np.isfinite(want)
+        np.testing.assert_allclose(got[finite], want[finite], rtol=1e-13, atol=1e-14)

@@ -291,7 +291,7 @@ def test_replayed_derivatives_match_the_checkpointed_loop():
 def test_differentiated_runs_report_what_the_loop_reports():
     """Under differentiation a run is taken by `nhjax._replay`'s own loop; in a batch
     where one trajectory fails at step 24 of 40 (on a save) and one succeeds, it
-    returns the diffrax loop's values, codes, statistics and save times (infinite after
+    returns the run's values, codes, statistics and save times (infinite after
     the last step taken), forward mode applied to the jitted, vmapped run."""
     (q0, p0), args = _gearbox_start()
     method = nh.GonzalezF(root_find_max_steps=12)

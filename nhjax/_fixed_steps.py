@@ -1,0 +1,64 @@
+r"""nhjax's own loop of fixed steps: the run that `nhjax.integrate` returns when nothing
+differentiates through its loop.
+
+`diffrax.diffeqsolve` strings any steps together, with adaptive step sizes, dense
+output, events, progress meters and adjoints; a fixed-step run needs none of that
+except an adjoint, and `nhjax.integrate` differentiates its runs by its own rule
+(`nhjax._replay`, or diffrax's loop inside the rule). What the general loop costs such a
+run is compile time: its end-time clipping alone (t1 taken back 100 ulps one
+`prevbefore` at a time, on a traced t1) is some 1 700 HLO instructions in every
+program, and its bookkeeping for saves, jumps and events as much again. This loop is a
+`lax.scan` of the solver's steps (`diffrax.AbstractSolver.step`, any solver) in blocks
+of `save_every`, saving after each block, with the same step times (`step_time`), the
+same codes and statistics, and the same saves as diffrax's loop with
+`nhjax._step_times.FixedStepTimes`: a step that fails is the last one taken, and the
+steps after it, or after `n_steps` of a run bounded by `max_steps`, keep the state
+(`nhjax._integrate` fills the saves after a failure as diffrax does).
+"""
+
+import diffrax
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+
+from ._ledger import observe
+from ._results import first_failure, from_diffrax, RESULTS
+from ._solution import method_outcome
+from ._step_times import save_times, step_time
+
+
+def fixed_step_run(system, method: diffrax.AbstractSolver, y_start, dt, t0, args, n_steps, *, max_steps: int, save_every: int):
+    """The run of `n_steps` fixed steps of `method` from `y_start`, saved as a run of
+    `max_steps`: `(ts, (ys, observed), final solver state, the run's code, number of
+    steps taken)`, as `nhjax._integrate`'s diffrax loop returns it. Not differentiable
+    through the loop's control (a failure stops it), as diffrax's loop would be with
+    an adjoint: `nhjax.integrate` differentiates it by its own rule."""
+    save = observe(system)
+    state = method.init(system, t0, step_time(t0, dt, jnp.array(1)), y_start, args)
+
+    def step(carry, k):
+        y, state, code, taken = carry
+        running = (code == RESULTS.successful) & (k < n_steps)
+
+        def take(_):
+            y1, _, _, state1, result = method.step(
+                system, step_time(t0, dt, k), step_time(t0, dt, k + 1), y, args, state, False
+            )
+            return y1, state1, from_diffrax(result), taken + 1
+
+        return lax.cond(running, take, lambda _: carry, None), None
+
+    def block(carry, steps):
+        carry, _ = lax.scan(step, carry, steps)
+        return carry, save(None, carry[0], args)
+
+    n_saves = max_steps // save_every
+    start = (y_start, state, RESULTS.successful, jnp.array(0))
+    (_, final_state, code, taken), saved = lax.scan(
+        block, start, jnp.arange(max_steps).reshape(n_saves, save_every)
+    )
+    first = jax.tree.map(lambda x: x[None], save(None, y_start, args))
+    saved = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, saved)
+    method_failure, _ = method_outcome(final_state)
+    ts = save_times(t0, dt, n_steps, n_saves, save_every=save_every)
+    return ts, saved, final_state, first_failure(method_failure, code), taken
