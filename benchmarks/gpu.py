@@ -19,14 +19,14 @@ it is measured, so that a run cut short keeps what it measured):
   200, in child processes, each with one candidate value of `XLA_FLAGS` (`LEVERS`:
   command buffers, CUDA graphs for loops; a flag XLA does not know ends its child,
   which is recorded), and in each child the runs of `LOOPS`: through `nhjax.integrate`
-  (its loop: a `lax.scan` of the steps, each behind a `lax.cond` that stops the run at a
-  failure) or a bare `lax.scan` of the steps
+  (its loop: a `lax.while_loop` of the steps between saves, which stops the run at its
+  end or at a failure) or a bare `lax.scan` of the steps
   (`_timing.bare_loop`); the step's rare branches by `lax.cond` or evaluated and
   selected; the chord iteration by its while loop or a loop of a fixed trip count
   first (the default chord iteration with `fixed_trip=FIXED_TRIP`, then its while
   loop). Each while-loop
   iteration and each `lax.cond` copies a predicate to the host: a GONZALEZ-R step on
-  the gearbox has the loop's `lax.cond` and one of its own, the chord matrix's `rarely`,
+  the gearbox has the loop's condition and a `lax.cond` in it, the chord matrix's `rarely`,
   and per chord iteration (4.4 a step) the loop's condition and the discrete
   gradient's `rarely`; with both branches selected and a fixed trip count, one
   condition per step is left beside the loop's.

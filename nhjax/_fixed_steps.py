@@ -8,8 +8,9 @@ except an adjoint, and `nhjax.integrate` differentiates its runs by its own rule
 run is compile time: its end-time clipping alone (t1 taken back 100 ulps one
 `prevbefore` at a time, on a traced t1) is some 1 700 HLO instructions in every
 program, and its bookkeeping for saves, jumps and events as much again. This loop is a
-`lax.scan` of the solver's steps (`diffrax.AbstractSolver.step`, any solver) in blocks
-of `save_every`, saving after each block, with the same step times (`step_time`), the
+`lax.scan` over blocks of `save_every` steps, saving after each block, each block a
+`lax.while_loop` of the solver's steps (`diffrax.AbstractSolver.step`, any solver) that
+stops at the run's end or at a failure, with the same step times (`step_time`), the
 same codes and statistics, and the same saves as diffrax's loop with
 `nhjax._step_times.FixedStepTimes`: a step that fails is the last one taken, and the
 steps after it, or after `n_steps` of a run bounded by `max_steps`, keep the state
@@ -36,27 +37,21 @@ def fixed_step_run(system, method: diffrax.AbstractSolver, y_start, dt, t0, args
     save = observe(system)
     state = method.init(system, t0, step_time(t0, dt, jnp.array(1)), y_start, args)
 
-    def step(carry, k):
-        y, state, code, taken = carry
-        running = (code == RESULTS.successful) & (k < n_steps)
+    def step(carry):
+        k, y, state, _ = carry
+        y1, _, _, state1, result = method.step(system, step_time(t0, dt, k), step_time(t0, dt, k + 1), y, args, state, False)
+        return k + 1, y1, state1, from_diffrax(result)
 
-        def take(_):
-            y1, _, _, state1, result = method.step(
-                system, step_time(t0, dt, k), step_time(t0, dt, k + 1), y, args, state, False
-            )
-            return y1, state1, from_diffrax(result), taken + 1
-
-        return lax.cond(running, take, lambda _: carry, None), None
-
-    def block(carry, steps):
-        carry, _ = lax.scan(step, carry, steps)
-        return carry, save(None, carry[0], args)
+    def block(carry, end):
+        # A while loop, not a scan, within the block: a run bounded by `max_steps`
+        # stops at its `n_steps`, and the blocks after it cost one save each.
+        running = lambda carry: (carry[0] < jnp.minimum(end, n_steps)) & (carry[3] == RESULTS.successful)  # noqa: E731
+        carry = lax.while_loop(running, step, carry)
+        return carry, save(None, carry[1], args)
 
     n_saves = max_steps // save_every
-    start = (y_start, state, RESULTS.successful, jnp.array(0))
-    (_, final_state, code, taken), saved = lax.scan(
-        block, start, jnp.arange(max_steps).reshape(n_saves, save_every)
-    )
+    start = (jnp.array(0), y_start, state, RESULTS.successful)
+    (taken, _, final_state, code), saved = lax.scan(block, start, save_every * jnp.arange(1, n_saves + 1))
     first = jax.tree.map(lambda x: x[None], save(None, y_start, args))
     saved = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, saved)
     method_failure, _ = method_outcome(final_state)
