@@ -40,7 +40,7 @@ from ._replay import replayed_run
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from ._ledger import observe, run_start
 from ._solution import method_outcome, nonfinite_saves, raise_failure, Solution, solution_from_saves
-from ._step_times import FixedStepTimes
+from ._step_times import FixedStepTimes, step_time
 from ._system import AbstractSystem
 
 
@@ -308,16 +308,20 @@ def _run_from_start(run, system, method, y0, dt, t0, args, check_constraint, n_s
     safe_dt = jnp.where(valid_dt, dt, jnp.ones_like(dt))
     if not isinstance(n_steps, int):
         n_steps = jnp.where(valid_n_steps, n_steps, jnp.ones_like(n_steps))
-    step_times = t0 + safe_dt * jnp.arange(max_steps + 1, dtype=dt.dtype)
-    end, before_end = step_times[n_steps], step_times[n_steps - 1]
-    in_run = jnp.arange(max_steps + 1) <= n_steps
-    # Increasing, and no step before the last within diffrax's end clipping (100 ulps
-    # of t1), which would end the loop early.
-    end_margin = 128 * jnp.finfo(dt.dtype).eps * jnp.abs(end)
+    end = step_time(t0, safe_dt, jnp.asarray(n_steps))
+    before_end = step_time(t0, safe_dt, jnp.asarray(n_steps) - 1)
+    eps = jnp.finfo(dt.dtype).eps
+    # The times t0 + k dt never decrease as k grows, so they are finite if the first
+    # and last are, and they increase strictly if dt > 4 eps max(|t0|, |t_n|): each
+    # difference t_{k+1} - t_k is dt up to rounding errors of at most 3 eps of that
+    # maximum (of dt k and of the sum). Checked in O(1), whatever the bound on n_steps.
+    # And no step before the last lands within diffrax's end clipping (100 ulps of
+    # t1), which would end its loop early.
     valid_times = (
-        jnp.all(jnp.isfinite(step_times) | ~in_run)
-        & jnp.all((jnp.diff(step_times) > 0) | ~in_run[1:])
-        & (end - before_end > end_margin)
+        jnp.isfinite(t0)
+        & jnp.isfinite(end)
+        & (safe_dt > 4 * eps * jnp.maximum(jnp.abs(t0), jnp.abs(end)))
+        & (end - before_end > 128 * eps * jnp.abs(end))
     )
     t0 = jnp.where(valid_times, t0, jnp.zeros_like(t0))
     initial_result = first_failure(

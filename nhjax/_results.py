@@ -16,8 +16,9 @@ class RESULTS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     invalid_dt = "The step size dt must be positive and finite."
     invalid_t0 = (
         "The step times t0 + k dt must be finite and strictly increasing: t0 is not "
-        "finite, or is so large that adding dt does not change it in floating point, "
-        "or changes it by less than the rounding allowed at the end of the run."
+        "finite, or the times are so large that adding dt barely changes them in "
+        "floating point (dt must exceed 4 eps max(|t0|, |t_n|)), or changes them by "
+        "less than the rounding allowed at the end of the run."
     )
     nonfinite_initial_evaluation = (
         "The system's functions return NaN or inf at the initial state (the "

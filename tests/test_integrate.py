@@ -378,6 +378,11 @@ def test_step_sizes_and_times_that_cannot_be_stepped():
     traced = jax.jit(lambda t0: nh.integrate(oscillator, METHOD, x0, 0.1, 10, t0=t0, throw=False).result)
     assert traced(jnp.nan) == nh.RESULTS.invalid_t0
     assert traced(1.0) == nh.RESULTS.successful
+    assert traced(-0.5) == nh.RESULTS.successful  # through t = 0
+    # Within a bound, the times of the steps taken count, not those of the bound.
+    bounded = jax.jit(lambda t0, n: nh.integrate(oscillator, METHOD, x0, 0.1, n, t0=t0, max_steps=10**6, save_every=10**6, throw=False).result)
+    assert bounded(1e20, 10) == nh.RESULTS.invalid_t0
+    assert bounded(1.0, 10) == nh.RESULTS.successful
 
 
 def test_nonfinite_parameters_are_named():
