@@ -18,7 +18,6 @@ steps after it, or after `n_steps` of a run bounded by `max_steps`, keep the sta
 """
 
 import diffrax
-import jax
 import jax.lax as lax
 import jax.numpy as jnp
 
@@ -51,9 +50,8 @@ def fixed_step_run(system, method: diffrax.AbstractSolver, y_start, dt, t0, args
 
     n_saves = max_steps // save_every
     start = (jnp.array(0), y_start, state, RESULTS.successful)
-    (taken, _, final_state, code), saved = lax.scan(block, start, save_every * jnp.arange(1, n_saves + 1))
-    first = jax.tree.map(lambda x: x[None], save(None, y_start, args))
-    saved = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, saved)
+    # The first block has no steps: it saves the start, so that the saves are traced once.
+    (taken, _, final_state, code), saved = lax.scan(block, start, save_every * jnp.arange(n_saves + 1))
     method_failure, _ = method_outcome(final_state)
     ts = save_times(t0, dt, n_steps, n_saves, save_every=save_every)
     return ts, saved, final_state, first_failure(method_failure, code), taken
