@@ -64,7 +64,7 @@ def integrate(
 
     The steps land exactly at `t0 + k dt` (`nhjax._step_times.step_time`); the run
     saves the initial state and every `save_every`-th step. The time loop is nhjax's
-    own scan of the method's steps (`nhjax._fixed_steps`), or, with `progress=True` or
+    own loop of the method's steps (`nhjax._fixed_steps`), or, with `progress=True` or
     a diffrax `adjoint`, `diffrax.diffeqsolve` with the same steps, with the same
     results. Works under `jax.jit` and `jax.vmap` (e.g. over
     a batch of `y0`), and compiles once per (system, method, shapes, static arguments):

@@ -25,8 +25,8 @@ are the run's states; it steps to the same times $t_0 + k\,\Delta t$
 (`nhjax._step_times.step_time`), reports the same codes and statistics as the run's
 loop, `nhjax._fixed_steps` (a failed step is the last one taken; the saves after it
 are NaN, their times inf), and a trajectory that failed has NaN derivatives
-(`nhjax.integrate` gates them). `python benchmarks/gradients.py` measures the derivative against the forward
-run and against diffrax's checkpointed adjoints.
+(`nhjax.integrate` gates them). `python benchmarks/gradients.py` measures the
+derivative against the forward run and against diffrax's checkpointed adjoints.
 """
 
 import math
