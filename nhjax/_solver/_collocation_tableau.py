@@ -50,6 +50,33 @@ class CollocationTableau(NamedTuple):
     def stages(self) -> int:
         return self.c.shape[0]
 
+    def inverse_blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        r"""What the inverse of $I - h\,a \otimes F$ needs, by the eigenvalues of $a$:
+        the eigenvalues $\mu_d$ whose blocks $B_d = (I - h\mu_dF)^{-1}$ are inverted (one
+        per real eigenvalue or conjugate pair: a partner's block is the conjugate), and
+        real weights $C$ of shape $(s, s, 2d)$ such that the inverse's block $(i, j)$ is
+        $\sum_d C_{ijd}\,\mathrm{Re}B_d + C_{ij(d + D)}\,\mathrm{Im}B_d$ ($D$ blocks):
+        $\mathrm{Re}(V_{ik}V^{-1}_{kj}B_k)$ summed over $k$, with
+        $\mathrm{Re}(P\bar B) = \mathrm{Re}P\,\mathrm{Re}B + \mathrm{Im}P\,\mathrm{Im}B$
+        for a partner's block."""
+        inverted, source = [], []
+        for eigenvalue in self.eigenvalues:
+            partner = next(
+                (d for d, other in enumerate(inverted) if np.isclose(other, eigenvalue.conjugate())), None
+            )
+            if partner is None or eigenvalue.imag == 0:
+                source.append((len(inverted), 1.0))
+                inverted.append(eigenvalue)
+            else:
+                source.append((partner, -1.0))
+        count = len(inverted)
+        weights = np.zeros((self.stages, self.stages, 2 * count))
+        for k, (d, sign) in enumerate(source):
+            product = np.outer(self.eigenvectors[:, k], self.eigenvectors_inverse[k, :])
+            weights[:, :, d] += product.real
+            weights[:, :, count + d] -= sign * product.imag
+        return np.array(inverted), weights
+
     @property
     def shares_nodes(self) -> bool:
         """Whether the quadrature nodes are the collocation nodes ($r = s$): the

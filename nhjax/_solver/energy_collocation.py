@@ -6,7 +6,6 @@ from typing import Any, ClassVar, NamedTuple
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
@@ -337,9 +336,15 @@ class EnergyPreservingCollocation(AbstractMethod):
         return self._chord_jacobian_of(self._scaled_field_jacobian(u, data), data.h)
 
     def _chord_jacobian_of(self, scaled, h):
-        """`chord_jacobian` from $F$ in the scaled unknowns."""
+        """`chord_jacobian` from $F$ in the scaled unknowns. Formed as an
+        $(s, N, s, N)$ array and reshaped, which XLA:CPU does without moving the
+        entries (`jnp.kron` and an $sN$ identity cost several times as much)."""
         a = jnp.asarray(self.tableau().a, dtype=scaled.dtype)
-        return jnp.eye(a.shape[0] * scaled.shape[0], dtype=scaled.dtype) - h * jnp.kron(a, scaled)
+        stages, size = a.shape[0], scaled.shape[0]
+        eye_stages, eye_size = jnp.eye(stages, dtype=scaled.dtype), jnp.eye(size, dtype=scaled.dtype)
+        identity = eye_stages[:, None, :, None] * eye_size[None, :, None, :]
+        jacobian = identity - h * a[:, None, :, None] * scaled[None, :, None, :]
+        return jacobian.reshape(stages * size, stages * size)
 
     def chord_matrix(self, u, data):
         r"""`chord_jacobian` and its inverse, from one $F$. The inverse by the
@@ -347,32 +352,29 @@ class EnergyPreservingCollocation(AbstractMethod):
         $\sum_k (v_k w_k^T) \otimes (I - h\lambda_kF)^{-1}$ ($v_k$, $w_k^T$ the columns
         of $V$ and rows of $V^{-1}$), one complex $N \times N$ inverse per real
         eigenvalue or conjugate pair (the conjugate's block is the conjugate), against
-        $(sN)^3$ work by elimination. Where $sN$ is within `UNROLL_LIMIT`, the unrolled
-        real elimination (`chord_inverse`) is the cheaper of the two on XLA:CPU, and is
-        used. Cut from differentiation, as the chord matrix is."""
+        $(sN)^3$ work by elimination; the sum is one real matrix product
+        (`CollocationTableau.inverse_blocks`). Where $sN$ is within `UNROLL_LIMIT`,
+        the unrolled real elimination (`chord_inverse`) is the cheaper of the two on
+        XLA:CPU, and is used. Cut from differentiation, as the chord matrix is."""
         scaled = self._scaled_field_jacobian(u, data)
         jacobian = self._chord_jacobian_of(scaled, data.h)
         if u.shape[0] <= UNROLL_LIMIT:
             return jacobian, chord_inverse(jacobian)
-        tableau = self.tableau()
+        eigenvalues, weights = self.tableau().inverse_blocks()
         scaled = lax.stop_gradient(scaled)
         complex_dtype = jnp.result_type(scaled.dtype, jnp.complex64)
         h = lax.stop_gradient(data.h)
         identity = jnp.eye(scaled.shape[0], dtype=complex_dtype)
-        blocks = {}
-        for k, eigenvalue in enumerate(tableau.eigenvalues):
-            if eigenvalue.imag < 0 and any(np.isclose(eigenvalue.conjugate(), other) for other in tableau.eigenvalues):
-                continue
-            blocks[k] = chord_inverse(identity - h * complex(eigenvalue) * scaled.astype(complex_dtype))
-        for k, eigenvalue in enumerate(tableau.eigenvalues):
-            if k not in blocks:
-                partner = next(j for j in blocks if np.isclose(tableau.eigenvalues[j], eigenvalue.conjugate()))
-                blocks[k] = jnp.conj(blocks[partner])
-        stacked = jnp.stack([blocks[k] for k in range(self.stages)])
-        vectors = jnp.asarray(tableau.eigenvectors, dtype=complex_dtype)
-        inverse_vectors = jnp.asarray(tableau.eigenvectors_inverse, dtype=complex_dtype)
-        inverse = jnp.einsum("ik,kj,kab->iajb", vectors, inverse_vectors, stacked).real
-        return jacobian, inverse.reshape(u.shape[0], u.shape[0]).astype(u.dtype)
+        blocks = jnp.stack([
+            chord_inverse(identity - h * complex(eigenvalue) * scaled.astype(complex_dtype))
+            for eigenvalue in eigenvalues
+        ])
+        stages, size = self.stages, scaled.shape[0]
+        parts = jnp.concatenate([blocks.real, blocks.imag]).reshape(-1, size * size)
+        inverse = (jnp.asarray(weights.reshape(stages * stages, -1), dtype=parts.dtype) @ parts).reshape(
+            stages, stages, size, size
+        )
+        return jacobian, inverse.transpose(0, 2, 1, 3).reshape(u.shape[0], u.shape[0]).astype(u.dtype)
 
     def reuses_chord_matrix(self) -> bool:
         """`reuse_chord_matrix` (see `nhjax.AbstractMethod.reuses_chord_matrix`)."""
