@@ -365,10 +365,9 @@ class EnergyPreservingCollocation(AbstractMethod):
         complex_dtype = jnp.result_type(scaled.dtype, jnp.complex64)
         h = lax.stop_gradient(data.h)
         identity = jnp.eye(scaled.shape[0], dtype=complex_dtype)
-        blocks = jnp.stack([
-            chord_inverse(identity - h * complex(eigenvalue) * scaled.astype(complex_dtype))
-            for eigenvalue in eigenvalues
-        ])
+        blocks = jax.vmap(chord_inverse)(
+            identity - h * jnp.asarray(eigenvalues, dtype=complex_dtype)[:, None, None] * scaled.astype(complex_dtype)
+        )
         stages, size = self.stages, scaled.shape[0]
         parts = jnp.concatenate([blocks.real, blocks.imag]).reshape(-1, size * size)
         inverse = (jnp.asarray(weights.reshape(stages * stages, -1), dtype=parts.dtype) @ parts).reshape(
