@@ -23,10 +23,11 @@ warm-up. Error: max-norm distance at t = 10 to a reference, Dopri8 at rtol = ato
 For each target error (1e-3, 1e-6, 1e-8, 1e-9, 1e-10): the cheapest run overall, the
 cheapest energy-exact run, the cheapest symmetric energy-exact run and the cheapest
 Dopri8 run that reach it, the ratios of the energy-exact and symmetric times to
-Dopri8's, and for each order the energy-preserving collocation's time against the
-GONZALEZ-R composition's; for each energy-exact method, the largest relative
-energy error and constraint residual at t = 10 over its runs. Also each scheme's error
-constant C in
+Dopri8's, the symmetric run and the Dopri8 run timed again in turns (the headline
+ratio: the sweeps are timed minutes apart, and this machine's load changes), and for
+each order the energy-preserving collocation's time against the GONZALEZ-R
+composition's; for each energy-exact method, the largest relative energy error and
+constraint residual at t = 10 over its runs. Also each scheme's error constant C in
 err = C h^p, measured on the quartic's reduced form, for every scheme of
 `nhjax.COMPOSITION_SCHEMES`.
 
@@ -37,6 +38,7 @@ Run: python benchmarks/composition.py [--repeats 5] [--quick]
 import argparse
 import itertools
 import pathlib
+import statistics
 
 import diffrax
 import jax
@@ -65,6 +67,9 @@ TSIT5_STEPS = (50, 100, 200, 400, 800, 1600, 3200)
 PROJECTED = "Dopri8 + projection (adaptive)"
 COLLOCATION = "EP-collocation"
 KEPT = " (kept chord matrix)"
+# Each timed row keeps its run under this key until the results are written.
+FUNCTION = "_function"
+HEAD_TO_HEAD_ROUNDS = 7
 
 
 def _problems():
@@ -104,7 +109,7 @@ def _sweep(system, method, y0, counts, reference, to_canonical, repeats, invaria
             continue
         seconds = median_time(function, repeats)
         rows.append(dict(steps=n, h=T1 / n, wall_time_s=seconds, failed=False,
-                         **_errors(to_canonical(final), reference, invariants)))
+                         **_errors(to_canonical(final), reference, invariants), **{FUNCTION: function}))
     return rows
 
 
@@ -123,7 +128,7 @@ def _dopri8(system, y0, reference, repeats, invariants, solver=diffrax.Dopri8())
             rows.append(dict(tolerance=tolerance, failed=True))
             continue
         rows.append(dict(tolerance=tolerance, steps=int(steps), wall_time_s=median_time(function, repeats),
-                         failed=False, **_errors(final, reference, invariants)))
+                         failed=False, **_errors(final, reference, invariants), **{FUNCTION: function}))
     return rows
 
 
@@ -234,6 +239,9 @@ def _summary(problem_name, runs, exact) -> dict:
             composition = _cheapest(runs[f"GONZALEZ-R, order {order}"], target)
             if collocation is not None and composition is not None:
                 collocation_over_composition[order] = collocation["wall_time_s"] / composition["wall_time_s"]
+        head_to_head = None
+        if symmetric[1] is not None and dopri8[1] is not None:
+            head_to_head = _head_to_head(symmetric[1][FUNCTION], dopri8[1][FUNCTION])
         summary[f"{target:.0e}"] = dict(
             cheapest=dict(method=overall[0], run=overall[1]),
             cheapest_energy_exact=dict(method=energy_exact[0], run=energy_exact[1]),
@@ -242,15 +250,40 @@ def _summary(problem_name, runs, exact) -> dict:
             energy_exact_over_dopri8=ratio,
             symmetric_energy_exact_over_dopri8=symmetric_ratio,
             collocation_over_gonzalez_r_composition=collocation_over_composition,
+            head_to_head=head_to_head,
         )
         print(f"{problem_name:10s} error {target:.0e}: cheapest {describe(overall)}; energy-exact "
               f"{describe(energy_exact)}; symmetric energy-exact {describe(symmetric)}; Dopri8 "
               f"{describe(dopri8)}; ratios " + (f"{ratio:.2f}" if ratio is not None else "n/a") + ", "
               + (f"{symmetric_ratio:.2f}" if symmetric_ratio is not None else "n/a")
               + "; collocation / composition by order "
-              + ", ".join(f"{order}: {value:.2f}" for order, value in collocation_over_composition.items()),
+              + ", ".join(f"{order}: {value:.2f}" for order, value in collocation_over_composition.items())
+              + ("" if head_to_head is None else f"; timed in turns: symmetric / Dopri8 {head_to_head['ratio']:.2f}"),
               flush=True)
     return summary
+
+
+def _head_to_head(symmetric, dopri8) -> dict:
+    """The cheapest symmetric energy-exact run and the cheapest Dopri8 run at a target,
+    timed again in turns (`HEAD_TO_HEAD_ROUNDS` rounds of `median_time` each), so that
+    the ratio does not depend on how this machine's load changed between the sweeps:
+    the medians of each, and their ratio."""
+    times = {"symmetric": [], "dopri8": []}
+    for _ in range(HEAD_TO_HEAD_ROUNDS):
+        times["symmetric"].append(median_time(symmetric, 3))
+        times["dopri8"].append(median_time(dopri8, 3))
+    medians = {name: statistics.median(values) for name, values in times.items()}
+    return dict(rounds=HEAD_TO_HEAD_ROUNDS, symmetric_s=medians["symmetric"], dopri8_s=medians["dopri8"],
+                ratio=medians["symmetric"] / medians["dopri8"])
+
+
+def _without_functions(tree):
+    """`tree` without the rows' timed functions (`FUNCTION`), for the JSON file."""
+    if isinstance(tree, dict):
+        return {key: _without_functions(value) for key, value in tree.items() if key != FUNCTION}
+    if isinstance(tree, list):
+        return [_without_functions(value) for value in tree]
+    return tree
 
 
 def _error_constants(repeats) -> dict:
@@ -277,13 +310,14 @@ def markdown(results) -> list[str]:
     for problem_name, problem in results["problems"].items():
         lines += [f"## {problem_name}: work against precision to t = {results['t1']:g}", "",
                   "| error | cheapest run | ms | cheapest energy-exact run | ms | cheapest symmetric energy-exact run "
-                  "| ms | cheapest Dopri8 ms | energy-exact / Dopri8 | symmetric / Dopri8 |",
-                  "|---|---|---:|---|---:|---|---:|---:|---:|---:|"]
+                  "| ms | cheapest Dopri8 ms | energy-exact / Dopri8 | symmetric / Dopri8 | the same, timed in turns |",
+                  "|---|---|---:|---|---:|---|---:|---:|---:|---:|---:|"]
         for target, row in problem["summary"].items():
             overall, exact, dopri8 = row["cheapest"], row["cheapest_energy_exact"], row["cheapest_dopri8"]
             symmetric = row["cheapest_symmetric_energy_exact"]
             milliseconds = lambda run: "" if run is None else f"{run['wall_time_s'] * 1e3:.2f}"  # noqa: E731
-            ratios = [row["energy_exact_over_dopri8"], row["symmetric_energy_exact_over_dopri8"]]
+            ratios = [row["energy_exact_over_dopri8"], row["symmetric_energy_exact_over_dopri8"],
+                      (row.get("head_to_head") or {}).get("ratio")]
             lines.append(f"| {target} | {overall['method'] or 'none'} | {milliseconds(overall['run'])} | "
                          f"{exact['method'] or 'none'} | {milliseconds(exact['run'])} | "
                          f"{symmetric['method'] or 'none'} | {milliseconds(symmetric['run'])} | {milliseconds(dopri8)} | "
@@ -298,6 +332,7 @@ def main():
     parser.add_argument("--quick", action="store_true", help="every other step count, 3 repeats")
     options = parser.parse_args()
     results = work_precision(3 if options.quick else options.repeats, options.quick)
+    results = _without_functions(results)
     write(results, str(pathlib.Path(__file__).parent / "results" / "composition.json"))
     print("\n".join(markdown(results)))
 
