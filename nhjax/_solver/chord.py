@@ -145,21 +145,24 @@ class PresetChord(optx.AbstractRootFinder):
         del options, tags
         residual, aux = fn(y, args)
         diff = state.inverse @ residual
+        tolerance = self.atol + self.rtol * self.norm(y) if self.rtol else self.atol
+        diff_size = self.norm(diff / (tolerance + state.correction_floor))
         # A non-finite correction (a NaN residual, a singular matrix) ends the
         # iteration as diverged; the iterate stays the last finite one, so that the
-        # caller can still tell where the step was heading.
-        diff = jnp.where(jnp.all(jnp.isfinite(diff)), diff, jnp.nan)
-        tolerance = self.atol + self.rtol * self.norm(y)
+        # caller can still tell where the step was heading. The norm is non-finite
+        # exactly when the correction is (norms propagate NaN and inf), so one reduction
+        # serves both.
+        finite = jnp.isfinite(diff_size)
         new_state = _ChordState(
             state.inverse,
             state.floor,
             state.correction_floor,
-            self.norm(diff / (tolerance + state.correction_floor)),
+            jnp.where(finite, diff_size, jnp.nan),
             state.diff_size,
             self.norm(residual / (self.atol + state.floor)),
             state.steps + 1,
         )
-        return jnp.where(jnp.isnan(diff), y, y - diff), new_state, aux
+        return jnp.where(finite, y - diff, y), new_state, aux
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, y, args, tags
