@@ -336,15 +336,15 @@ class EnergyPreservingCollocation(AbstractMethod):
         return self._chord_jacobian_of(self._scaled_field_jacobian(u, data), data.h)
 
     def _chord_jacobian_of(self, scaled, h):
-        """`chord_jacobian` from $F$ in the scaled unknowns. Formed as an
-        $(s, N, s, N)$ array and reshaped, which XLA:CPU does without moving the
-        entries (`jnp.kron` and an $sN$ identity cost several times as much)."""
-        a = jnp.asarray(self.tableau().a, dtype=scaled.dtype)
-        stages, size = a.shape[0], scaled.shape[0]
-        eye_stages, eye_size = jnp.eye(stages, dtype=scaled.dtype), jnp.eye(size, dtype=scaled.dtype)
-        identity = eye_stages[:, None, :, None] * eye_size[None, :, None, :]
-        jacobian = identity - h * a[:, None, :, None] * scaled[None, :, None, :]
-        return jacobian.reshape(stages * size, stages * size)
+        r"""`chord_jacobian` from $F$ in the scaled unknowns, assembled from its $s^2$
+        blocks $\delta_{ij}I - ha_{ij}F$: XLA:CPU forms that in about half the time of
+        `jnp.kron` or of a broadcast $(s, N, s, N)$ array (the order-8 quartic)."""
+        a = self.tableau().a
+        identity = jnp.eye(scaled.shape[0], dtype=scaled.dtype)
+        return jnp.block([
+            [(identity if i == j else 0.0) - h * float(a[i, j]) * scaled for j in range(a.shape[0])]
+            for i in range(a.shape[0])
+        ])
 
     def chord_matrix(self, u, data):
         r"""`chord_jacobian` and its inverse, from one $F$. The inverse by the
