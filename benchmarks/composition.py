@@ -23,8 +23,9 @@ warm-up. Error: max-norm distance at t = 10 to a reference, Dopri8 at rtol = ato
 For each target error (1e-3, 1e-6, 1e-8, 1e-9, 1e-10): the cheapest run overall, the
 cheapest energy-exact run, the cheapest symmetric energy-exact run and the cheapest
 Dopri8 run that reach it, the ratios of the energy-exact and symmetric times to
-Dopri8's, the symmetric run and the Dopri8 run timed again in turns (the headline
-ratio: the sweeps are timed minutes apart, and this machine's load changes), and for
+Dopri8's, every symmetric energy-exact method's run of fewest steps that reaches it
+timed again in turns with Dopri8's (the headline ratio, `head_to_head`: the sweeps are
+timed minutes apart, and this machine's load changes), and for
 each order the energy-preserving collocation's time against the GONZALEZ-R
 composition's; for each energy-exact method, the largest relative energy error and
 constraint residual at t = 10 over its runs. Also each scheme's error constant C in
@@ -239,9 +240,7 @@ def _summary(problem_name, runs, exact) -> dict:
             composition = _cheapest(runs[f"GONZALEZ-R, order {order}"], target)
             if collocation is not None and composition is not None:
                 collocation_over_composition[order] = collocation["wall_time_s"] / composition["wall_time_s"]
-        head_to_head = None
-        if symmetric[1] is not None and dopri8[1] is not None:
-            head_to_head = _head_to_head(symmetric[1][FUNCTION], dopri8[1][FUNCTION])
+        head_to_head = _head_to_head(runs, [name for name in exact if name != PROJECTED], target)
         summary[f"{target:.0e}"] = dict(
             cheapest=dict(method=overall[0], run=overall[1]),
             cheapest_energy_exact=dict(method=energy_exact[0], run=energy_exact[1]),
@@ -258,23 +257,53 @@ def _summary(problem_name, runs, exact) -> dict:
               + (f"{symmetric_ratio:.2f}" if symmetric_ratio is not None else "n/a")
               + "; collocation / composition by order "
               + ", ".join(f"{order}: {value:.2f}" for order, value in collocation_over_composition.items())
-              + ("" if head_to_head is None else f"; timed in turns: symmetric / Dopri8 {head_to_head['ratio']:.2f}"),
+              + ("" if head_to_head is None else f"; timed in turns: {head_to_head['method']} / Dopri8 "
+                                                  f"{head_to_head['ratio']:.2f}"),
               flush=True)
     return summary
 
 
-def _head_to_head(symmetric, dopri8) -> dict:
-    """The cheapest symmetric energy-exact run and the cheapest Dopri8 run at a target,
-    timed again in turns (`HEAD_TO_HEAD_ROUNDS` rounds of `median_time` each), so that
-    the ratio does not depend on how this machine's load changed between the sweeps:
-    the medians of each, and their ratio."""
-    times = {"symmetric": [], "dopri8": []}
+def _head_to_head(runs, symmetric_names, target) -> dict | None:
+    """The symmetric energy-exact methods against Dopri8 at `target`, timed in turns
+    (`HEAD_TO_HEAD_ROUNDS` rounds of `median_time` each), so that the ratios do not
+    depend on how this machine's load changed between the sweeps. Each method enters
+    with its run of fewest steps that reaches the target, its cheapest by construction
+    (a fixed-step run's cost grows with its steps, an adaptive one's with the steps it
+    takes), so that a noisy sweep cannot pick a dearer run. Returns the medians and
+    each method's ratio to Dopri8's median, the lowest ratio with its method, and for
+    orders 4, 6 and 8 the cheaper collocation's median over the GONZALEZ-R
+    composition's."""
+
+    def fewest_steps(rows):
+        reached = [row for row in rows if not row["failed"] and row["error"] <= target]
+        return min(reached, key=lambda row: row["steps"]) if reached else None
+
+    dopri8 = fewest_steps(runs["Dopri8 (adaptive)"])
+    candidates = {name: fewest_steps(runs[name]) for name in symmetric_names}
+    candidates = {name: row for name, row in candidates.items() if row is not None}
+    if dopri8 is None or not candidates:
+        return None
+    times = {name: [] for name in ["Dopri8 (adaptive)", *candidates]}
     for _ in range(HEAD_TO_HEAD_ROUNDS):
-        times["symmetric"].append(median_time(symmetric, 3))
-        times["dopri8"].append(median_time(dopri8, 3))
+        times["Dopri8 (adaptive)"].append(median_time(dopri8[FUNCTION], 3))
+        for name, row in candidates.items():
+            times[name].append(median_time(row[FUNCTION], 3))
     medians = {name: statistics.median(values) for name, values in times.items()}
-    return dict(rounds=HEAD_TO_HEAD_ROUNDS, symmetric_s=medians["symmetric"], dopri8_s=medians["dopri8"],
-                ratio=medians["symmetric"] / medians["dopri8"])
+    ratios = {name: medians[name] / medians["Dopri8 (adaptive)"] for name in candidates}
+    best = min(ratios, key=ratios.get)
+    collocation_over_composition = {}
+    for order in (4, 6, 8):
+        collocations = [medians[name] for name in (f"{COLLOCATION}, order {order}", f"{COLLOCATION}{KEPT}, order {order}")
+                        if name in medians]
+        composition = medians.get(f"GONZALEZ-R, order {order}")
+        if collocations and composition is not None:
+            collocation_over_composition[order] = min(collocations) / composition
+    return dict(rounds=HEAD_TO_HEAD_ROUNDS, dopri8_s=medians["Dopri8 (adaptive)"],
+                dopri8_tolerance=dopri8["tolerance"], method=best, steps=candidates[best]["steps"],
+                symmetric_s=medians[best], ratio=ratios[best],
+                ratios={name: dict(steps=candidates[name]["steps"], seconds=medians[name], ratio=ratio)
+                        for name, ratio in ratios.items()},
+                collocation_over_gonzalez_r_composition=collocation_over_composition)
 
 
 def _without_functions(tree):
