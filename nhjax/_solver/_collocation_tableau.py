@@ -54,8 +54,9 @@ class CollocationTableau(NamedTuple):
         r"""What the inverse of $I - h\,a \otimes F$ needs, by the eigenvalues of $a$:
         the eigenvalues $\mu_d$ whose blocks $B_d = (I - h\mu_dF)^{-1}$ are inverted (one
         per real eigenvalue or conjugate pair: a partner's block is the conjugate), and
-        real weights $C$ of shape $(s, s, 2d)$ such that the inverse's block $(i, j)$ is
-        $\sum_d C_{ijd}\,\mathrm{Re}B_d + C_{ij(d + D)}\,\mathrm{Im}B_d$ ($D$ blocks):
+        real weights $C$ of shape $(s, s, 2D)$, $D$ the number of blocks, such that the
+        inverse's block $(i, j)$ is
+        $\sum_d C_{ijd}\,\mathrm{Re}B_d + C_{ij(d + D)}\,\mathrm{Im}B_d$, that is
         $\mathrm{Re}(V_{ik}V^{-1}_{kj}B_k)$ summed over $k$, with
         $\mathrm{Re}(P\bar B) = \mathrm{Re}P\,\mathrm{Re}B + \mathrm{Im}P\,\mathrm{Im}B$
         for a partner's block."""
