@@ -117,10 +117,10 @@ def test_the_tableau_is_the_gauss_method():
 
 @pytest.mark.parametrize("order", [4, 6, 8])
 def test_the_chord_matrix_comes_with_its_inverse(order):
-    """`chord_matrix` returns I - h (a x F) and its inverse: by the Gauss matrix's
-    eigenvalues on the quartic's reduced form (2, 3 and 4 stages of 13 unknowns each,
-    above the unrolled elimination's limit), by elimination on the gearbox's (5 each,
-    within it up to order 6). The matrix is the one `chord_jacobian` forms."""
+    """`chord_matrix` returns I - h (a x F) and its inverse, by the Gauss matrix's
+    eigenvalues (complex pairs, and the real eigenvalue of order 6), on the quartic's
+    reduced form (13 unknowns per stage) and the gearbox's (5). The matrix is the one
+    `chord_jacobian` forms."""
     quartic, gearbox = nh.examples.chaotic_quartic(3), nh.examples.gearbox()
     method = nh.EnergyPreservingCollocation(order)
     for system, y0 in (
