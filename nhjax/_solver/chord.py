@@ -145,7 +145,11 @@ class PresetChord(optx.AbstractRootFinder):
         del options, tags
         residual, aux = fn(y, args)
         diff = state.inverse @ residual
-        tolerance = self.atol + self.rtol * self.norm(y) if self.rtol else self.atol
+        # A relative tolerance given as the number 0 adds nothing: the iterate's norm
+        # is then not computed (0 * norm still costs a reduction on XLA). A traced or
+        # array rtol keeps the general form.
+        no_rtol = isinstance(self.rtol, (int, float)) and self.rtol == 0
+        tolerance = self.atol if no_rtol else self.atol + self.rtol * self.norm(y)
         diff_size = self.norm(diff / (tolerance + state.correction_floor))
         # A non-finite correction (a NaN residual, a singular matrix) ends the
         # iteration as diverged; the iterate stays the last finite one, so that the

@@ -95,6 +95,31 @@ def test_a_remainder_bound_iterates_until_the_estimated_error_is_below_it():
     assert exact.result == optx.RESULTS.successful and int(exact.steps) == 2
 
 
+
+def test_a_relative_tolerance_may_be_traced_and_loosens_the_correction_test():
+    """rtol given as a traced value (inside `jax.jit`) enters the tolerance of the
+    corrections, atol + rtol |u|, as the same rtol given as a number does; the residual
+    is still held to atol. Here the correction is 9 times the residual (residual
+    0.1 (u - root), inverse 9 I, contraction 0.1), so with rtol |u| far above atol the
+    correction test stops binding and the iteration ends sooner."""
+    root = jnp.array([1e6, -2e6, 5e5])
+    fn = lambda u, args: 0.1 * (u - root)  # noqa: E731
+    inverse = 9.0 * jnp.eye(3)
+
+    @jax.jit
+    def traced(rtol):
+        return PresetChord(atol=ATOL, rtol=rtol).solve(fn, jnp.zeros(3), None, inverse, 50)
+
+    relative = traced(jnp.asarray(1e-6))
+    number = PresetChord(atol=ATOL, rtol=1e-6).solve(fn, jnp.zeros(3), None, inverse, 50)
+    absolute = PresetChord(atol=ATOL).solve(fn, jnp.zeros(3), None, inverse, 50)
+    for solution in (relative, number, absolute):
+        assert solution.result == optx.RESULTS.successful
+        assert float(jnp.max(jnp.abs(fn(solution.value, None)))) < ATOL
+    np.testing.assert_array_equal(relative.value, number.value)
+    assert int(relative.steps) == int(number.steps) < int(absolute.steps)
+
+
 @pytest.mark.parametrize("growth", [4.0, jnp.inf])
 def test_growing_or_nonfinite_corrections_are_divergence(growth, route):
     solution = _solve(lambda u, args: growth * (u - ROOT) + 1.0, jnp.eye(3), route=route)
