@@ -133,9 +133,11 @@ def _dopri8(system, y0, reference, repeats, invariants, solver=diffrax.Dopri8())
     return rows
 
 
-def _cheapest(rows, target):
+def _cheapest(rows, target, by="wall_time_s"):
+    """The row reaching `target` with the least `by`: its time in the sweep, or its
+    number of steps (`_head_to_head`)."""
     reached = [row for row in rows if not row["failed"] and row["error"] <= target]
-    return min(reached, key=lambda row: row["wall_time_s"]) if reached else None
+    return min(reached, key=lambda row: row[by]) if reached else None
 
 
 def _error_constant(rows, order):
@@ -274,12 +276,8 @@ def _head_to_head(runs, symmetric_names, target) -> dict | None:
     orders 4, 6 and 8 the cheaper collocation's median over the GONZALEZ-R
     composition's."""
 
-    def fewest_steps(rows):
-        reached = [row for row in rows if not row["failed"] and row["error"] <= target]
-        return min(reached, key=lambda row: row["steps"]) if reached else None
-
-    dopri8 = fewest_steps(runs["Dopri8 (adaptive)"])
-    candidates = {name: fewest_steps(runs[name]) for name in symmetric_names}
+    dopri8 = _cheapest(runs["Dopri8 (adaptive)"], target, by="steps")
+    candidates = {name: _cheapest(runs[name], target, by="steps") for name in symmetric_names}
     candidates = {name: row for name, row in candidates.items() if row is not None}
     if dopri8 is None or not candidates:
         return None
