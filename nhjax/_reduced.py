@@ -314,7 +314,7 @@ class ReducedSystem(eqx.Module):
             grad_q = grad_q - transpose_times(y)
         return ReducedPoint(frame, p, jnp.concatenate([grad_q, y]), times, transpose_times)
 
-    def field_jacobian(self, zeta, t, args) -> Float[Array, "N N"]:
+    def field_jacobian(self, zeta, t, args, frame_turn: bool = False) -> Float[Array, "N N"]:
         r"""An approximation of the derivative of the field $\Pi\nabla\mathcal{H}$ (plus
         the applied force in the frame, at time `t`) at $\zeta$, with the frame held to
         first order, for chord matrices (`nhjax.GonzalezR.chord_jacobian`):
@@ -333,16 +333,40 @@ class ReducedSystem(eqx.Module):
 
         Those would take $n$ tangents (or $n$ shifted factorisations) through the
         QR, $O(n^2k^2)$ work: GONZALEZ-R's cost grew like $n^4$ with them
-        (`benchmarks/scaling.py`)."""
+        (`benchmarks/scaling.py`).
+
+        `frame_turn`: also the derivative of the $\rho$-rows' $J(p)Xy$ in $p$, which
+        for $J(p)_{ai} = p^T\partial_iX_a$ linear in $p$ is $(\partial_uX)^T$ with
+        $u = Xy$: the frame's turn along the velocity, one tangent through the QR.
+        Of the terms left out it is the one that sets the chord iteration's
+        contraction where the frame turns within $\mathcal{D}$. Measured by adding
+        left-out terms to the matrix (GONZALEZ-R on the synthetic systems of
+        `benchmarks/scaling.py`, $h = 0.05$, iterations per step): the derivative of
+        $B$ in $y$ changes them by under 0.2; this term takes them from 8.4 to 5.7
+        at $n = 8$, 9.0 to 5.9 at $n = 16$ and 9.9 to 7.1 at $n = 64$; the rest, to
+        the exact matrix's 3.9 and 4.0 at $n = 8, 16$, is $J$'s derivative in $q$
+        (second derivatives of the QR). On the gearbox, whose frame turns only out
+        of $\mathcal{D}$, it changes nothing, nor on Euler's disk, whose iterations
+        (9.0 at $h = 0.05$, 4.6 with the exact matrix) come from $J$'s derivative
+        in $q$; on the energy-preserving collocation it did not pay for its
+        tangent. So it is the caller's choice."""
         system = self.system
-        q, _ = split_reduced(zeta, self.signs)
+        q, rho = split_reduced(zeta, self.signs)
         frame = FormedFrame(self.frame(q, args).matrix())
+        turn = None
+        if frame_turn:
+            motion = frame.times(self.momentum_in_frame(q, frame, rho, args)[1])
+            turn = jax.jvp(lambda x: self.frame(x, args).matrix(), (q,), (motion,))[1]
 
         def field_in_fixed_frame(z):
             x, rho = split_reduced(z, self.signs)
             p, y = self.momentum_in_frame(x, frame, rho, args)
             force = self.position_gradient(x, p, args)
-            field = jnp.concatenate([frame.times(y), -frame.transpose_times(force)])
+            along_rho = -frame.transpose_times(force)
+            if turn is not None:
+                # Its value is not used: only its derivative in p, with the turn held.
+                along_rho = along_rho + turn.T @ p
+            field = jnp.concatenate([frame.times(y), along_rho])
             if system.is_forced():
                 applied = system.applied_force(t, x, p, args, frame.times(y))
                 field = field.at[q.shape[0] :].add(frame.transpose_times(applied))

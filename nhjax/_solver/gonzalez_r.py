@@ -2,9 +2,10 @@ r"""GONZALEZ-R (§3.3): the Gonzalez discrete-gradient method on the reduced sys
 evaluated from $H$ and $A$ alone.
 
 **What a step costs.** One chord matrix (`GonzalezR.chord_jacobian`: the derivative of
-the field with the frame formed once at the predictor's midpoint and held to first
-order, from derivatives of $H$ and $A$ but none of the QR, and its inverse,
-`nhjax._solver.chord.chord_inverse`), then five to nine residuals. A residual is the
+the field with the frame formed once at the predictor's midpoint, held to first
+order and turned along the velocity, from derivatives of $H$ and $A$ and one tangent
+through the QR, and its inverse,
+`nhjax._solver.chord.chord_inverse`), then four to nine residuals. A residual is the
 field at the midpoint, $\Pi\bar\nabla\mathcal{H}$, and $\mathcal{H}$ at $\zeta'$ for the
 Gonzalez correction. The field needs the frame only through products with $X$ and
 $X^T$ (`nhjax._householder.HouseholderFrame`: $k$ reflections of a vector each) and the
@@ -289,22 +290,25 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     def chord_jacobian(self, u, data):
         r"""An approximation of the Jacobian of `simplified_residual`,
         $I - \tfrac h2\,S^{-1}FS$ at $\bar\zeta = \zeta + Su/2$, where $F$ is the
-        derivative of $\Pi\nabla\mathcal{H}$ with the frame held to first order
-        (`nhjax._reduced.ReducedSystem.field_jacobian`), from derivatives of $H$ and $A$
-        but none of the QR.
+        derivative of $\Pi\nabla\mathcal{H}$ with the frame held to first order and
+        its turn along the velocity (`nhjax._reduced.ReducedSystem.field_jacobian`
+        with `frame_turn`), from derivatives of $H$ and $A$ and one tangent through
+        the QR.
 
         What $F$ leaves out is $O(h)$ in the chord
         iteration's contraction factor, against $O(h^3)$ for the exact matrix, and the
         iteration goes on until the error it leaves is below the rounding
-        (`chord_remainder`). Iterations per step, with the matrix that carries the
-        frame's derivative in brackets: gearbox 4.4 (4.3; its frame turns only out of
-        $\mathcal{D}$), $n = 3$ quartic 7.9 (5.0), 3D rolling disk 5.7 (3.3),
-        synthetic systems of `benchmarks/scaling.py` at $n = 8, 16$ 8.4, 9.1 (4.3),
-        each step as cheap or cheaper from the quartic on (the disk 10% dearer).
+        (`chord_remainder`). Iterations per step at $h = 0.05$, without the turn,
+        with it, and with the exact matrix: synthetic systems of
+        `benchmarks/scaling.py` at $n = 8$ 8.4, 5.7, 3.9 and $n = 16$ 9.0, 5.9, 4.0;
+        $n = 3$ quartic 6.3, 4.9; gearbox 3.9 either way (its frame turns only out of
+        $\mathcal{D}$); Euler's disk 9.0, 9.0, 4.6. The exact matrix takes $N$
+        tangents through second derivatives of the QR, which cost more than the
+        iterations they save from $n = 16$ on.
         The root does not depend on the matrix, and derivatives of the root do not use
         it (see `nhjax._solver.chord`)."""
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
-        field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args)
+        field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args, frame_turn=True)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
 
     def resolution(self, data):
