@@ -1,8 +1,11 @@
 """GONZALEZ-R's step against variants of itself, timed in one process with the runs
 interleaved (A, B, C, A, B, C, ...) so that the machine's drift falls on all alike:
 
-- `GONZALEZ-R`: as shipped (chord matrix with the frame held to first order,
-  extrapolated predictor, products with the frame derivative matrix-free);
+- `GONZALEZ-R`: as shipped (chord matrix with the frame held to first order and
+  turned along the velocity, extrapolated predictor, products with the frame
+  derivative matrix-free);
+- `no frame turn`: the chord matrix with the frame held to first order only
+  (`nhjax._reduced.ReducedSystem.field_jacobian` without `frame_turn`);
 - `no predictor`: every step starts from no motion, as the first step of a run does
   (the chord iteration's first iterate then a linearly implicit Euler step);
 - `jacfwd chord matrix`: the generic `jax.jacfwd` of the simplified residual for the
@@ -11,7 +14,8 @@ interleaved (A, B, C, A, B, C, ...) so that the machine's drift falls on all ali
   `jax.jacfwd` through the QR ($n$ tangents), where the method takes the products
   $Jv$ and $J^Tw$ from one linearisation.
 
-On the gearbox and the quartic with n = 3 and n = 10 at h = 0.1: median µs/step,
+On the gearbox, the quartic with n = 3 and n = 10, the synthetic system of
+`benchmarks/scaling.py` with n = 16 and Euler's disk at h = 0.1: median µs/step,
 root-finder iterations per step and compile time, and each variant's time as a ratio
 to the shipped method's.
 
@@ -29,6 +33,7 @@ import jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
+import scaling  # noqa: E402
 from _timing import run_and_time_interleaved, timed, write  # noqa: E402
 from nhjax._reduced import ReducedSystem  # noqa: E402
 from nhjax._solver.base import AbstractMethod  # noqa: E402
@@ -54,29 +59,43 @@ class _FormedFrameDerivativeReduced(ReducedSystem):
         return super().at(zeta, args, contracted)
 
 
-class FormedFrameDerivative(nh.GonzalezR):
-    def _reduced(self, system, signs, h, y0, args):
-        reduced = super()._reduced(system, signs, h, y0, args)
-        return _FormedFrameDerivativeReduced(system, signs, reduced.derivative, reduced.difference_step, reduced.metric)
+class _NoFrameTurnReduced(ReducedSystem):
+    def field_jacobian(self, zeta, t, args, frame_turn=False):
+        return super().field_jacobian(zeta, t, args)
+
+
+def _on_reduced(reduced_type):
+    """GONZALEZ-R with its reduced system of type `reduced_type`."""
+
+    class Variant(nh.GonzalezR):
+        def _reduced(self, system, signs, h, y0, args):
+            reduced = super()._reduced(system, signs, h, y0, args)
+            return reduced_type(system, signs, reduced.derivative, reduced.difference_step, reduced.metric)
+
+    return Variant()
 
 
 VARIANTS = {
     "GONZALEZ-R": nh.GonzalezR(),
+    "no frame turn": _on_reduced(_NoFrameTurnReduced),
     "no predictor": NoPredictor(),
     "jacfwd chord matrix": JacfwdChordMatrix(),
-    "formed frame derivative": FormedFrameDerivative(),
+    "formed frame derivative": _on_reduced(_FormedFrameDerivativeReduced),
 }
 
 
 def _problems():
     gearbox = nh.examples.gearbox()
-    problems = {"gearbox": (gearbox.canonical, gearbox.random_initial_state(jax.random.key(0)), 5000)}
+    problems = {"gearbox": (gearbox.canonical, gearbox.random_initial_state(jax.random.key(0)), 5000, gearbox.args)}
     for n, steps in ((3, 1000), (10, 100)):
         quartic = nh.examples.chaotic_quartic(n)
         key_q, key_p = jax.random.split(jax.random.key(n))
         q = 0.5 * jax.random.normal(key_q, (2 * n + 1,))
         p = quartic.canonical.project_momentum(q, 0.5 * jax.random.normal(key_p, (2 * n + 1,)))
-        problems[f"quartic n = {n}"] = (quartic.canonical, (q, p), steps)
+        problems[f"quartic n = {n}"] = (quartic.canonical, (q, p), steps, quartic.args)
+    problems["synthetic n = 16"] = (scaling.SYSTEM, scaling.initial_state(16), 100, None)
+    disk = nh.examples.rolling_disk_3d()
+    problems["Euler's disk"] = (disk.canonical, disk.state(**scaling.DISK_START), 500, disk.args)
     return problems
 
 
@@ -87,10 +106,12 @@ def main():
     options = parser.parse_args()
 
     results = {}
-    for problem, (system, y0, steps) in _problems().items():
+    for problem, (system, y0, steps, args) in _problems().items():
         runs, compile_s = {}, {}
         for name, method in VARIANTS.items():
-            runs[name] = jax.jit(lambda y0, method=method: nh.integrate(system, method, y0, 0.1, steps, save_every=steps))
+            runs[name] = jax.jit(
+                lambda y0, method=method: nh.integrate(system, method, y0, 0.1, steps, args=args, save_every=steps)
+            )
             compile_s[name] = timed(lambda y: runs[name].lower(y).compile(), y0)
         solutions, seconds = run_and_time_interleaved(runs, y0, repeats=options.repeats)
         rows = {
