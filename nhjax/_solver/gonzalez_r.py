@@ -5,7 +5,8 @@ evaluated from $H$ and $A$ alone.
 the field with the frame formed once at the predictor's midpoint, held to first
 order and turned along the velocity, from derivatives of $H$ and $A$ and one tangent
 through the QR, and its inverse,
-`nhjax._solver.chord.chord_inverse`), then four to nine residuals. A residual is the
+`nhjax._solver.chord.chord_inverse`), then four to eleven residuals at the step sizes of
+`benchmarks/gonzalez_r_variants.py`. A residual is the
 field at the midpoint, $\Pi\bar\nabla\mathcal{H}$, and $\mathcal{H}$ at $\zeta'$ for the
 Gonzalez correction. The field needs the frame only through products with $X$ and
 $X^T$ (`nhjax._householder.HouseholderFrame`: $k$ reflections of a vector each) and the
