@@ -93,7 +93,9 @@ def _legendre_transform_jvp(primals, tangents):
     _, lagrangian_dot = eqx.filter_jvp(
         lambda q_, args_: hamiltonian.lagrangian(q_, velocity, args_), (q, args), (q_dot, args_dot)
     )
-    value_dot = -lagrangian_dot
+    # None where L depends on neither q nor a differentiable parameter (a free body's
+    # kinetic energy with its masses as numbers): that part of dH is zero.
+    value_dot = jnp.zeros_like(value) if lagrangian_dot is None else -lagrangian_dot
     if p_dot is not None:
         value_dot = value_dot + velocity @ p_dot
     return value, value_dot

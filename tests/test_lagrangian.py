@@ -74,6 +74,28 @@ def test_the_momentum_of_a_velocity_is_the_lagrangians_derivative():
     np.testing.assert_allclose(system.velocity(q, p, sleigh.args), qdot, atol=1e-14)
 
 
+def test_a_lagrangian_free_of_q_and_of_parameters_has_the_free_bodys_gradient():
+    """L = 1/2 qdot^T diag(m) qdot with the masses as numbers depends on neither q nor
+    args, so the Legendre transform's derivative along q and args is a symbolic zero:
+    the gradient of H = 1/2 p^T diag(m)^-1 p is (0, p / m), by reverse and forward
+    mode, and the system's velocity is p / m."""
+    masses = np.array([2.0, 3.0, 0.5])
+
+    def lagrangian(q, qdot, args):
+        del q, args
+        return 0.5 * jnp.sum(masses * qdot**2)
+
+    system = nh.NonholonomicSystem.from_lagrangian(lagrangian, lambda q, args: jnp.array([[1.0, 0.0, -1.0]]))
+    q, p = jnp.array([0.3, -0.2, 1.1]), jnp.array([0.5, -1.5, 2.0])
+    reverse = jax.grad(system.hamiltonian, argnums=(0, 1))(q, p, None)
+    forward = jax.jacfwd(system.hamiltonian, argnums=(0, 1))(q, p, None)
+    for grad_q, grad_p in (reverse, forward, (None, jax.grad(system.hamiltonian, argnums=1)(q, p, None))):
+        if grad_q is not None:
+            np.testing.assert_array_equal(grad_q, np.zeros(3))
+        np.testing.assert_allclose(grad_p, p / masses, rtol=1e-15)
+    np.testing.assert_allclose(system.velocity(q, p, None), p / masses, rtol=1e-15)
+
+
 def _final_state(system, method, y0, args, n_steps=50):
     solution = nh.integrate(system, method, y0, 0.1, n_steps, args=args, save_every=n_steps)
     assert solution.result == nh.RESULTS.successful
