@@ -2,6 +2,9 @@
 chord matrix and the predictor, the finite-difference option, the metric shortcuts, and
 rank loss. (Order, invariants and symmetry: test_methods.py.)"""
 
+import pathlib
+import sys
+
 import diffrax
 import equinox as eqx
 import jax
@@ -12,6 +15,10 @@ import pytest
 import nhjax as nh
 
 from ..helpers import canonical_starts, final_states, fitted_order, relative_energy_error
+
+
+sys.path.insert(0, str(pathlib.Path(__file__).parents[2] / "benchmarks"))
+import scaling  # noqa: E402
 
 
 GEARBOX = nh.examples.gearbox()
@@ -111,32 +118,15 @@ def test_chord_matrix_contracts_like_h(name):
         assert float(factors[0] / factors[1]) >= 1.8, factors
 
 
-def _chain_with_rolling_rows(n: int = 8) -> nh.NonholonomicSystem:
-    """A chain of n unit masses with springs, whose n/4 constraint rows turn with the
-    configuration inside and out of D (the family of `benchmarks/scaling.py`)."""
-
-    def hamiltonian(q, p, args):
-        return 0.5 * p @ p + 0.5 * q @ q + jnp.sum(1 - jnp.cos(q[1:] - q[:-1]))
-
-    def constraints(q, args):
-        rows = jnp.arange(n // 4)
-        a = jnp.zeros((n // 4, n), q.dtype).at[rows, 4 * rows].set(1.0)
-        a = a.at[rows, 4 * rows + 2].set(jnp.sin(q[4 * rows + 1]))
-        return a.at[rows, 4 * rows + 3].set(0.5 * jnp.cos(q[4 * rows + 3]))
-
-    return nh.NonholonomicSystem(hamiltonian, constraints)
-
-
 def test_the_frame_turn_sets_the_chord_iterations_contraction():
     """The spectral radius of the chord iteration I - C^{-1}J at a step's first guess
     (J by `jax.jacfwd`), with and without the frame's turn along the velocity in C
-    (`ReducedSystem.field_jacobian`): where the frame turns within D (the chain, the
-    quartic) the turn cuts it at least fivefold, and on the quartic it leaves an
+    (`ReducedSystem.field_jacobian`): where the frame turns within D (the quartic, and
+    the synthetic system of `benchmarks/scaling.py` with n = 8, whose two constraint
+    rows turn with the configuration) the turn cuts it at least fivefold, and on the quartic it leaves an
     iteration that contracts faster than O(h); where it turns only out of D (the
     gearbox) both matrices are exact. Without the turn the radius is O(h)."""
-    chain = _chain_with_rolling_rows()
-    q = 0.3 * jnp.sin(jnp.arange(8.0) + 1.0)
-    cases = {"chain": (chain, (q, chain.project_momentum(q, jnp.cos(0.7 * jnp.arange(8.0)))), None)}
+    cases = {"synthetic n = 8": (scaling.SYSTEM, scaling.initial_state(8), None)}
     for name in ("quartic", "gearbox"):
         example = nh.examples.EXAMPLES[name]()
         cases[name] = (example.canonical, example.start("canonical"), example.args)
