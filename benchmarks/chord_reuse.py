@@ -3,7 +3,10 @@ it at every step, for GONZALEZ-R and the energy-preserving collocation, timed in
 in one process (`_timing.run_and_time_interleaved`).
 
 Cases: the paper's gearbox, n = 3 quartic and sleigh (GONZALEZ-R, h = 0.1), Euler's disk
-with H from its mass matrix and from its Lagrangian (h = 0.01), the synthetic systems of
+with H from its mass matrix and from its Lagrangian (h = 0.01), the disk's mass-matrix form
+as a batch of 32 trajectories under `jax.vmap` (momenta scaled by 1 to 1.01: under
+`vmap` a step forms the whole batch's matrices when any trajectory needs a fresh one,
+`nhjax._rare_branch.rarely`), the synthetic systems of
 `scaling.py` at n = 16 and 64 (h = 0.05); the collocation of order 4, 6 and 8 on the
 quartic and of order 6 and 8 on the gearbox, at the step sizes where
 `composition.py` finds them cheapest. For each: µs/step (median) both ways and their
@@ -25,6 +28,9 @@ import scaling  # noqa: E402
 from _timing import options, run_and_time_interleaved, write  # noqa: E402
 
 
+_BATCH = 32
+
+
 def _cases():
     gearbox, quartic = nh.examples.gearbox(), nh.examples.chaotic_quartic(3)
     sleigh, disk = nh.examples.chaplygin_sleigh(), nh.examples.rolling_disk_3d()
@@ -40,6 +46,11 @@ def _cases():
         cases[f"GONZALEZ-R, Euler's disk ({name})"] = (
             system, disk.initial_state(), disk.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep), 0.01, 500
         )
+    q0, p0 = disk.initial_state()
+    batch = (jnp.broadcast_to(q0, (_BATCH, *q0.shape)), p0 * (1 + 0.01 * jnp.arange(_BATCH) / _BATCH)[:, None])
+    cases[f"GONZALEZ-R, Euler's disk (mass-matrix H), batch of {_BATCH}"] = (
+        disk.canonical, batch, disk.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep), 0.01, 200
+    )
     for n, steps in ((16, 100), (64, 20)):
         cases[f"GONZALEZ-R, synthetic n = {n}"] = (
             scaling.SYSTEM, scaling.initial_state(n), None, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep),
@@ -57,16 +68,25 @@ def _cases():
 
 
 def _measure(system, y0, args, method_of, h, steps, repeats):
-    runs = {
-        label: jax.jit(lambda y, method=method_of(keep): nh.integrate(system, method, y, h, steps, args=args, save_every=steps))
-        for label, keep in (("fresh", False), ("kept", True))
-    }
+    """Both ways in turns; a batched `y0` (leading axis beyond the state's) runs under
+    `jax.vmap`, its counts the batch's means."""
+    batched = jnp.ndim(y0[0]) == 2
+
+    def run_of(method):
+        run = lambda y: nh.integrate(system, method, y, h, steps, args=args, save_every=steps)  # noqa: E731
+        return jax.jit(jax.vmap(run) if batched else run)
+
+    runs = {label: run_of(method_of(keep)) for label, keep in (("fresh", False), ("kept", True))}
     solutions, seconds = run_and_time_interleaved(runs, y0, repeats=repeats)
     fresh, kept = solutions["fresh"], solutions["kept"]
     difference = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(fresh.ys), jax.tree.leaves(kept.ys)))
 
     def energy_error(solution):
-        return float(jnp.max(jnp.abs(solution.energy - solution.energy[0])) / jnp.abs(solution.energy[0]))
+        energy = solution.energy
+        return float(jnp.max(jnp.abs(energy - energy[..., :1]) / jnp.abs(energy[..., :1])))
+
+    def per_step(count):
+        return float(jnp.mean(count)) / steps
 
     return dict(
         h=h,
@@ -74,9 +94,9 @@ def _measure(system, y0, args, method_of, h, steps, repeats):
         fresh_us_per_step=seconds["fresh"] / steps * 1e6,
         kept_us_per_step=seconds["kept"] / steps * 1e6,
         kept_over_fresh=seconds["kept"] / seconds["fresh"],
-        fresh_iterations_per_step=float(fresh.stats["root_find_steps"]) / steps,
-        kept_iterations_per_step=float(kept.stats["root_find_steps"]) / steps,
-        kept_matrices_per_step=float(kept.stats["chord_matrices"]) / steps,
+        fresh_iterations_per_step=per_step(fresh.stats["root_find_steps"]),
+        kept_iterations_per_step=per_step(kept.stats["root_find_steps"]),
+        kept_matrices_per_step=per_step(kept.stats["chord_matrices"]),
         final_state_difference=difference,
         energy_errors=dict(fresh=energy_error(fresh), kept=energy_error(kept)),
     )
