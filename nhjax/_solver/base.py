@@ -18,10 +18,10 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int, PyTree, Scalar
 
 from .._ledger import Ledgered, unledgered
+from .._linalg import inverse, UNROLL_LIMIT
 from .._rare_branch import rarely
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
-from .._linalg import inverse, UNROLL_LIMIT
 from .chord import chord_inverse, ChordSolution, PresetChord
 
 
@@ -102,11 +102,13 @@ def _jacobian_solve(jacobian: Float[Array, "u u"], b: Float[Array, " u"]) -> Flo
     r"""$(\partial_uF)^{-1}b$ for the root's derivatives: up to `UNROLL_LIMIT` unknowns
     by the inverse from unrolled Gauss--Jordan elimination with partial pivoting
     (`nhjax._linalg.inverse`), whose product with $b$ reverse mode transposes into a
-    product with its transpose; above, by LAPACK's LU. A step's Jacobian is
-    $I - O(h)$, well conditioned, so the inverse's rounding is that of a solve. On
-    XLA:CPU the LU's factorisation, its two triangular solves and the sort that turns
-    its pivots into a permutation for the transposed solve are separate library calls,
-    which for $n \le 16$ cost more than the arithmetic (`benchmarks/gradients.py`)."""
+    product with its transpose; above, by LAPACK's LU. Pivoted, as not every method's
+    Jacobian is diagonally dominant (GONZALEZ-F's multiplier block has a zero
+    diagonal); for the well-conditioned Jacobians of a step the inverse's rounding is
+    that of a solve. On XLA:CPU the LU's factorisation, its two triangular solves and
+    the sort that turns its pivots into a permutation for the transposed solve are
+    separate library calls, which for $n \le 16$ cost more than the arithmetic
+    (`benchmarks/gradients.py`)."""
     if jacobian.shape[0] > UNROLL_LIMIT:
         return jnp.linalg.solve(jacobian, b)
     return inverse(jacobian) @ b
