@@ -81,6 +81,21 @@ def inverse(a: Float[Array, "n n"], pivoting: bool = True) -> Float[Array, "n n"
     return augmented[:, n:]
 
 
+
+def solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
+    r"""$a^{-1}b$ for a general nonsingular `a`: up to `UNROLL_LIMIT` by the pivoted
+    `inverse` times $b$, which reverse mode transposes into a product with the
+    inverse's transpose; above, by LAPACK's LU. A singular `a` gives non-finite entries.
+
+    For the small systems of a step (the Jacobian of a root, for its derivatives),
+    LAPACK's LU is a factorisation, two triangular solves and, transposed, a sort that
+    turns its pivots into a permutation: separate library calls on XLA:CPU, which cost
+    more than the arithmetic (`benchmarks/gradients.py`). The inverse's rounding is a
+    solve's for a well-conditioned `a`."""
+    if a.shape[0] > UNROLL_LIMIT:
+        return jnp.linalg.solve(a, b)
+    return inverse(a) @ b
+
 def is_diagonally_dominant(a: Float[Array, "n n"]) -> Bool[Array, ""]:
     """Whether `a` is strictly diagonally dominant by rows or by columns."""
     magnitudes = jnp.abs(a)

@@ -13,6 +13,7 @@ from nhjax._linalg import (
     product,
     PRODUCT_LIMIT,
     safe_norm,
+    solve,
     solve_spd,
     UNROLL_LIMIT,
 )
@@ -64,6 +65,19 @@ def test_inverse_needs_pivoting_and_reports_singular_matrices():
     swap = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
     np.testing.assert_array_equal(inverse(swap), jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.5]]))
     assert not bool(jnp.all(jnp.isfinite(inverse(jnp.array([[1.0, 2.0], [2.0, 4.0]])))))
+
+
+def test_solve_pivots_and_reports_singular_matrices():
+    """A zero diagonal block (GONZALEZ-F's Jacobians have one) needs the pivoting; a
+    singular matrix gives non-finite entries, not a finite wrong answer. Above
+    `UNROLL_LIMIT` the LU answers."""
+    saddle = jnp.array([[2.0, 0.5, 1.0], [0.5, 3.0, -1.0], [1.0, -1.0, 0.0]])
+    rhs = jnp.array([1.0, -2.0, 0.5])
+    np.testing.assert_allclose(jax.jit(solve)(saddle, rhs), np.linalg.solve(saddle, rhs), rtol=1e-14)
+    assert not bool(jnp.all(jnp.isfinite(solve(jnp.array([[1.0, 2.0], [2.0, 4.0]]), jnp.ones(2)))))
+    large = jax.random.normal(jax.random.key(1), (UNROLL_LIMIT + 1, UNROLL_LIMIT + 1)) + 5 * jnp.eye(UNROLL_LIMIT + 1)
+    ones = jnp.ones(UNROLL_LIMIT + 1)
+    np.testing.assert_allclose(solve(large, ones), np.linalg.solve(large, ones), rtol=1e-12)
 
 
 @given(n=st.integers(1, 9), seed=st.integers(0, 2**31 - 1))

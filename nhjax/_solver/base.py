@@ -18,7 +18,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, Int, PyTree, Scalar
 
 from .._ledger import Ledgered, unledgered
-from .._linalg import inverse, UNROLL_LIMIT
+from .._linalg import solve
 from .._rare_branch import rarely
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
@@ -95,23 +95,7 @@ def _implicit_root_jvp(primals, tangents, *, residual, replayed: bool = False):
     # derivatives) sees the root, and with it the Jacobian below, move with the data.
     root = _implicit_root(root, data, residual=residual, replayed=replayed)
     _, jacobian, residual_tangent = _linearised(residual, root, data, data_tangent)
-    return root, -_jacobian_solve(jacobian, residual_tangent)
-
-
-def _jacobian_solve(jacobian: Float[Array, "u u"], b: Float[Array, " u"]) -> Float[Array, " u"]:
-    r"""$(\partial_uF)^{-1}b$ for the root's derivatives: up to `UNROLL_LIMIT` unknowns
-    by the inverse from unrolled Gauss--Jordan elimination with partial pivoting
-    (`nhjax._linalg.inverse`), whose product with $b$ reverse mode transposes into a
-    product with its transpose; above, by LAPACK's LU. Pivoted, as not every method's
-    Jacobian is diagonally dominant (GONZALEZ-F's multiplier block has a zero
-    diagonal); for the well-conditioned Jacobians of a step the inverse's rounding is
-    that of a solve. On XLA:CPU the LU's factorisation, its two triangular solves and
-    the sort that turns its pivots into a permutation for the transposed solve are
-    separate library calls, which for $n \le 16$ cost more than the arithmetic
-    (`benchmarks/gradients.py`)."""
-    if jacobian.shape[0] > UNROLL_LIMIT:
-        return jnp.linalg.solve(jacobian, b)
-    return inverse(jacobian) @ b
+    return root, -solve(jacobian, residual_tangent)
 
 
 def _linearised(equations, root, data, data_tangent):
@@ -155,7 +139,7 @@ def _implicit_root_and_exchange_jvp(primals, tangents, *, residual, equations, r
     (_, exchange), (jacobian, exchange_rows), (residual_tangent, exchange_tangent) = _linearised(
         equations, root, data, data_tangent
     )
-    root_tangent = -_jacobian_solve(jacobian, residual_tangent)
+    root_tangent = -solve(jacobian, residual_tangent)
     exchange_tangent = jax.tree.map(lambda along_data, row: along_data + row @ root_tangent, exchange_tangent, exchange_rows)
     return (root, exchange), (root_tangent, exchange_tangent)
 

@@ -123,9 +123,10 @@ def test_the_frame_turn_sets_the_chord_iterations_contraction():
     (J by `jax.jacfwd`), with and without the frame's turn along the velocity in C
     (`ReducedSystem.field_jacobian`): where the frame turns within D (the quartic, and
     the synthetic system of `benchmarks/scaling.py` with n = 8, whose two constraint
-    rows turn with the configuration) the turn cuts it at least fivefold, and on the quartic it leaves an
-    iteration that contracts faster than O(h); where it turns only out of D (the
-    gearbox) both matrices are exact. Without the turn the radius is O(h)."""
+    rows turn with the configuration) the turn cuts it at least fivefold, and on the
+    quartic it leaves an iteration that contracts faster than O(h); where it turns
+    only out of D (the gearbox) both matrices are exact. Without the turn the radius
+    is O(h)."""
     cases = {"synthetic n = 8": (scaling.SYSTEM, scaling.initial_state(8), None)}
     for name in ("quartic", "gearbox"):
         example = nh.examples.EXAMPLES[name]()
