@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._linalg import solve_spd
+
 
 
 def adapted_structure(
@@ -28,8 +30,9 @@ def momentum_to_adapted(frame, p):
 
 
 def adapted_to_momentum(frame, metric, rho):
-    """p = g X (X^T g X)^{-1} rho, eq. (ptoptilde)."""
-    return metric @ frame @ jnp.linalg.solve(frame.T @ metric @ frame, rho)
+    """p = g X (X^T g X)^{-1} rho, eq. (ptoptilde); X^T g X is symmetric positive
+    definite (`nhjax._linalg.solve_spd`)."""
+    return metric @ frame @ solve_spd(frame.T @ metric @ frame, rho)
 
 
 def discrete_constraint_residual(constraints, qs: Float[Array, "T n"], args=None) -> Float[Array, "T-1 k"]:

@@ -96,6 +96,7 @@ def solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
         return jnp.linalg.solve(a, b)
     return inverse(a) @ b
 
+
 def is_diagonally_dominant(a: Float[Array, "n n"]) -> Bool[Array, ""]:
     """Whether `a` is strictly diagonally dominant by rows or by columns."""
     magnitudes = jnp.abs(a)

@@ -3,6 +3,7 @@ empty, bit-flipped, swapped with another chunk, missing, or another run's. Each 
 named in a warning and computed again, and the result is bit-identical to the
 uninterrupted run."""
 
+import re
 import shutil
 
 import jax
@@ -124,8 +125,8 @@ def test_a_bad_chunk_is_named_and_computed_again(runs, tmp_path, name):
 
 
 def test_a_chunk_that_does_not_start_where_the_previous_ended_is_recomputed(runs, tmp_path):
-    """Chunk 1 recomputed from a changed chunk 0 ends elsewhere: chunk 2, computed from
-    the old end, no longer follows it and is computed again too."""
+    """Chunk 1 recomputed from a changed chunk 0 ends elsewhere: chunks 2 and 3, computed
+    from the old ends, no longer follow it, and each is named and computed again."""
     directory, solution, _, _ = runs
     copy = tmp_path / "chunks"
     shutil.copytree(directory, copy)
@@ -139,8 +140,10 @@ def test_a_chunk_that_does_not_start_where_the_previous_ended_is_recomputed(runs
     identity = {key[len("chunk_"):]: arrays.pop(key).item() for key in list(arrays) if key.startswith("chunk_")}
     arrays.pop("checksum")
     np.savez(copy / "chunk_00000.npz", **with_identity(arrays, identity))
-    with pytest.warns(RuntimeWarning, match=r"chunk_00002\.npz starts from another state"):
+    with pytest.warns(RuntimeWarning, match="starts from another state") as warned:
         resumed = _chunked(copy)
+    named = sorted(re.search(r"chunk_(\d+)\.npz starts from another state", str(w.message)).group(1) for w in warned)
+    assert named == ["00002", "00003"]
     assert _bits(resumed) != _bits(solution)  # it follows the changed chunk 0
     fresh = np.asarray(resumed.ys[1])
     assert np.all(np.isfinite(fresh))
