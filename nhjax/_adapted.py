@@ -12,7 +12,6 @@ from jaxtyping import Array, Float
 from ._linalg import solve_spd
 
 
-
 def adapted_structure(
     frame: Float[Array, "n m"], bracket: Float[Array, "m m"]
 ) -> Float[Array, "n+m n+m"]:

@@ -81,7 +81,6 @@ def inverse(a: Float[Array, "n n"], pivoting: bool = True) -> Float[Array, "n n"
     return augmented[:, n:]
 
 
-
 def solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
     r"""$a^{-1}b$ for a general nonsingular `a`: up to `UNROLL_LIMIT` by the pivoted
     `inverse` times $b$, which reverse mode transposes into a product with the
