@@ -44,13 +44,19 @@ class CompileTimes:
     lowering (`trace_and_lower_s`, timed on construction), plus XLA's compilation with
     its default emitters (`compile_s`, also on construction), plus, of the same lowered
     program, with its loop emitter (`loop_emitter_compile_s`, `LOOP_EMITTER`, timed by
-    `times()`, which a caller may put after its memory figures)."""
+    `times()`, which a caller may put after its memory figures). Also the size of the
+    program XLA compiled, in lines of its optimised HLO (`hlo_lines`): unlike the
+    times, the same on every run of one JAX version, so that a change in a program's
+    size shows through this machine's noise."""
 
     def __init__(self, function, *arguments):
         start = time.perf_counter()
         self.lowered = function.lower(*arguments)
         self.trace_and_lower_s = time.perf_counter() - start
-        self.compile_s = self.trace_and_lower_s + timed(self.lowered.compile)
+        start = time.perf_counter()
+        compiled = self.lowered.compile()
+        self.compile_s = self.trace_and_lower_s + time.perf_counter() - start
+        self.hlo_lines = len(compiled.as_text().splitlines())
 
     def times(self) -> dict[str, float]:
         loop_emitter_s = timed(lambda: self.lowered.compile(compiler_options=LOOP_EMITTER))
@@ -58,6 +64,7 @@ class CompileTimes:
             compile_s=self.compile_s,
             trace_and_lower_s=self.trace_and_lower_s,
             loop_emitter_compile_s=self.trace_and_lower_s + loop_emitter_s,
+            hlo_lines=self.hlo_lines,
         )
 
 

@@ -21,7 +21,8 @@ derivative's time ratio to the forward run comes from its own process, the two t
 turn after the memory is recorded. Compile time is tracing and lowering
 (`trace_and_lower_s`) plus XLA's compilation, with its default emitters (`compile_s`)
 and, of the same lowered program after the memory figures, with its loop emitter
-(`loop_emitter_compile_s`; the README says how to choose it).
+(`loop_emitter_compile_s`; the README says how to choose it); the program's size is
+`hlo_lines`, lines of its optimised HLO.
 
 Run: python benchmarks/gradients.py [--steps N ...] [--repeats R] [--systems NAME ...]
 Medians over repeats; results go to benchmarks/results/gradients.json.
