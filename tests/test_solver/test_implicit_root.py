@@ -72,3 +72,31 @@ def test_root_and_exchange_derivatives_follow_the_implicit_function_theorem(load
         root_derivative, exchange_derivative = jax.jit(transform(root_and_exchange))(theta)
         np.testing.assert_allclose(root_derivative, expected_root, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(exchange_derivative, expected_exchange, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("load_size", [N, FORMED_DATA_DERIVATIVE_LIMIT + 8], ids=["data formed", "data tangent"])
+def test_second_derivatives_of_the_root_match_differences_of_the_first(load_size):
+    """Forward over forward and reverse over forward (the second derivatives nhjax
+    supports, `nhjax.integrate`), against central differences of the first derivative
+    from the implicit function theorem."""
+    theta = jnp.concatenate([jnp.array([0.3, -0.2, 0.5, 0.15]), 0.1 * jnp.cos(jnp.arange(load_size) + 1.0)])
+
+    def root(theta):
+        data = data_of(theta, load_size)
+        return _implicit_root(root_of(data), data, residual=residual)
+
+    step = 1e-5
+    differences = np.stack(
+        [
+            (
+                by_the_implicit_function_theorem(theta.at[i].add(step), load_size)[0]
+                - by_the_implicit_function_theorem(theta.at[i].add(-step), load_size)[0]
+            )
+            / (2 * step)
+            for i in range(theta.shape[0])
+        ],
+        axis=-1,
+    )
+    assert float(np.max(np.abs(differences))) > 0.01
+    for second in (jax.jacfwd(jax.jacfwd(root)), jax.jacrev(jax.jacfwd(root))):
+        np.testing.assert_allclose(jax.jit(second)(theta), differences, rtol=1e-6, atol=1e-8)
