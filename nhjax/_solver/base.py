@@ -118,9 +118,10 @@ def _linearised(equations, root, data, data_tangent):
     transposing the linearisation put a second copy of the residual's derivative (for
     GONZALEZ-R, second derivatives of the QR) into the program: the derivative
     programs of the sleigh and of Euler's disk are 14% smaller
-    (`benchmarks/gradients.py` records their size, `hlo_lines`, and compile time). With more entries (large
-    systems, or a control signal in the data) the batch would grow by as many tangents
-    as there are entries, and the one tangent along the data is taken instead."""
+    (`benchmarks/gradients.py` records their size, `hlo_lines`, and compile time).
+    With more entries (large systems, or a control signal in the data) the batch
+    would grow by as many tangents as there are entries, and the one tangent along
+    the data is taken instead."""
     differentiable = jax.tree.map(lambda t: t is not None, data_tangent, is_leaf=lambda t: t is None)
     varying, fixed = eqx.partition(data, differentiable)
     tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
