@@ -95,7 +95,6 @@ def test_a_remainder_bound_iterates_until_the_estimated_error_is_below_it():
     assert exact.result == optx.RESULTS.successful and int(exact.steps) == 2
 
 
-
 def test_a_relative_tolerance_may_be_traced_and_loosens_the_correction_test():
     """rtol given as a traced value (inside `jax.jit`) enters the tolerance of the
     corrections, atol + rtol |u|, as the same rtol given as a number does; the residual
