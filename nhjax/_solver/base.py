@@ -126,9 +126,9 @@ def _linearised(equations, root, data, data_tangent):
     varying, fixed = eqx.partition(data, differentiable)
     tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
     value, linear = jax.linearize(lambda u, v: equations(u, eqx.combine(v, fixed)), root, varying)
-    flat_varying, unravel = jax.flatten_util.ravel_pytree(varying)
     n = root.shape[0]
-    if flat_varying.size <= FORMED_DATA_DERIVATIVE_LIMIT:
+    if sum(leaf.size for leaf in jax.tree.leaves(varying)) <= FORMED_DATA_DERIVATIVE_LIMIT:
+        flat_varying, unravel = jax.flatten_util.ravel_pytree(varying)
         unit = jnp.eye(n + flat_varying.size, dtype=root.dtype)
         along_all = jax.vmap(
             lambda e: linear(e[:n], unravel(e[n:].astype(flat_varying.dtype))), out_axes=-1
