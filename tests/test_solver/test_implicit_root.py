@@ -41,6 +41,16 @@ def root_of(data):
     return lax.fori_loop(0, 200, lambda _, u: u - residual(u, data), jnp.zeros(N))
 
 
+def root(theta, load_size):
+    """The root as nhjax's steps return it, its derivatives by `_implicit_root`."""
+    data = data_of(theta, load_size)
+    return _implicit_root(root_of(data), data, residual=residual)
+
+
+def parameters(load_size):
+    return jnp.concatenate([jnp.array([0.3, -0.2, 0.5, 0.15]), 0.1 * jnp.sin(jnp.arange(load_size) + 1.0)])
+
+
 def by_the_implicit_function_theorem(theta, load_size):
     """(du/dtheta, dE/dtheta) from Jacobians of F and E in u and in theta."""
     u = root_of(data_of(theta, load_size))
@@ -55,11 +65,7 @@ def by_the_implicit_function_theorem(theta, load_size):
 
 @pytest.mark.parametrize("load_size", [N, FORMED_DATA_DERIVATIVE_LIMIT + 8], ids=["data formed", "data tangent"])
 def test_root_and_exchange_derivatives_follow_the_implicit_function_theorem(load_size):
-    theta = jnp.concatenate([jnp.array([0.3, -0.2, 0.5, 0.15]), 0.1 * jnp.sin(jnp.arange(load_size) + 1.0)])
-
-    def root(theta):
-        data = data_of(theta, load_size)
-        return _implicit_root(root_of(data), data, residual=residual)
+    theta = parameters(load_size)
 
     def root_and_exchange(theta):
         data = data_of(theta, load_size)
@@ -68,7 +74,8 @@ def test_root_and_exchange_derivatives_follow_the_implicit_function_theorem(load
     expected_root, expected_exchange = by_the_implicit_function_theorem(theta, load_size)
     assert float(jnp.max(jnp.abs(expected_root))) > 0.01  # the root moves with the data
     for transform in (jax.jacfwd, jax.jacrev):
-        np.testing.assert_allclose(jax.jit(transform(root))(theta), expected_root, rtol=1e-12, atol=1e-14)
+        root_derivative = jax.jit(transform(root), static_argnums=1)(theta, load_size)
+        np.testing.assert_allclose(root_derivative, expected_root, rtol=1e-12, atol=1e-14)
         root_derivative, exchange_derivative = jax.jit(transform(root_and_exchange))(theta)
         np.testing.assert_allclose(root_derivative, expected_root, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(exchange_derivative, expected_exchange, rtol=1e-12, atol=1e-14)
@@ -79,12 +86,7 @@ def test_second_derivatives_of_the_root_match_differences_of_the_first(load_size
     """Forward over forward and reverse over forward (the second derivatives nhjax
     supports, `nhjax.integrate`), against central differences of the first derivative
     from the implicit function theorem."""
-    theta = jnp.concatenate([jnp.array([0.3, -0.2, 0.5, 0.15]), 0.1 * jnp.cos(jnp.arange(load_size) + 1.0)])
-
-    def root(theta):
-        data = data_of(theta, load_size)
-        return _implicit_root(root_of(data), data, residual=residual)
-
+    theta = parameters(load_size)
     step = 1e-5
     differences = np.stack(
         [
@@ -99,4 +101,5 @@ def test_second_derivatives_of_the_root_match_differences_of_the_first(load_size
     )
     assert float(np.max(np.abs(differences))) > 0.01
     for second in (jax.jacfwd(jax.jacfwd(root)), jax.jacrev(jax.jacfwd(root))):
-        np.testing.assert_allclose(jax.jit(second)(theta), differences, rtol=1e-6, atol=1e-8)
+        second_derivative = jax.jit(second, static_argnums=1)(theta, load_size)
+        np.testing.assert_allclose(second_derivative, differences, rtol=1e-6, atol=1e-8)
