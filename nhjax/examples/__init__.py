@@ -2,8 +2,9 @@
 it comes in (canonical, from its Lagrangian, reduced in adapted coordinates), maps
 between them and initial states in one convention. `EXAMPLES` is the catalogue, by the
 names the command line uses: the paper's systems, Euler's disk (`rolling_disk_3d`), a
-system as a mechanician derives it, and a differential-drive robot with motors and
-friction (`differential_drive`)."""
+system as a mechanician derives it, a differential-drive robot with motors and
+friction (`differential_drive`), and a tractor pulling any number of trailers
+(`tractor_trailers`), a family of real systems of any size."""
 
 from .._adapted import discrete_constraint_residual as discrete_constraint_residual
 from ._example import AbstractExample as AbstractExample
@@ -19,11 +20,20 @@ from ._differential_drive import (
     DifferentialDrive as DifferentialDrive,
     torque_at as torque_at,
 )
+from ._tractor_trailers import tractor_trailers as tractor_trailers, TractorTrailers as TractorTrailers
 
 # Every example by its name; each is made with its default parameters by calling its class.
 EXAMPLES: dict[str, type[AbstractExample]] = {
     example.name: example
     for example in (
-        Gearbox, ChaoticQuartic, ChaplyginSleigh, RollingDisk, Suslov, ContactOscillator, RollingDisk3D, DifferentialDrive
+        Gearbox,
+        ChaoticQuartic,
+        ChaplyginSleigh,
+        RollingDisk,
+        Suslov,
+        ContactOscillator,
+        RollingDisk3D,
+        DifferentialDrive,
+        TractorTrailers,
     )
 }

@@ -1,0 +1,143 @@
+"""The tractor with trailers against what is derived here from the bodies' positions
+alone: its metric, potential and constraints; the lone tractor against the knife edge's
+closed form; the train against its reduced equations in the tractor's speed and turning
+rate (Lagrange--d'Alembert with the velocities eliminated), integrated by Dopri8."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import nhjax as nh
+from tests.helpers import relative_energy_error
+
+
+def _positions(example, q):
+    """The axle midpoints P_0..P_N, each hitched at `hitch` behind the one ahead."""
+    steps = -example.hitch * jnp.stack([jnp.cos(q[3:]), jnp.sin(q[3:])], axis=1)
+    return jnp.concatenate([q[None, :2], q[None, :2] + jnp.cumsum(steps, axis=0)])
+
+
+def _masses(example):
+    return jnp.array([example.m_tractor] + [example.m_trailer] * example.trailers)
+
+
+def _kinetic_energy(example, q, qdot):
+    velocities = jax.jvp(lambda z: _positions(example, z), (q,), (qdot,))[1]
+    inertias = jnp.array([example.J_tractor] + [example.J_trailer] * example.trailers)
+    return 0.5 * _masses(example) @ jnp.sum(velocities**2, axis=1) + 0.5 * inertias @ qdot[2:] ** 2
+
+
+def _potential(example, q):
+    return -example.g * np.sin(example.slope) * _masses(example) @ _positions(example, q)[:, 0]
+
+
+def _sideways_velocities(example, q, qdot):
+    """Each axle's velocity across its heading: zero when no wheel slips."""
+    velocities = jax.jvp(lambda z: _positions(example, z), (q,), (qdot,))[1]
+    headings = q[2:]
+    return -jnp.sin(headings) * velocities[:, 0] + jnp.cos(headings) * velocities[:, 1]
+
+
+def test_metric_potential_and_constraints_are_those_of_the_bodies():
+    example = nh.examples.tractor_trailers(4, m_trailer=0.7, J_trailer=0.15, hitch=0.8, slope=0.3)
+    keys = jax.random.split(jax.random.key(0), 3)
+    q = jax.random.normal(keys[0], (7,))
+    qdot = jax.random.normal(keys[1], (7,))
+    metric = jax.hessian(lambda v: _kinetic_energy(example, q, v))(qdot)
+    np.testing.assert_allclose(example.metric(q, example.args), metric, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(example.potential(q, example.args), _potential(example, q), rtol=1e-14)
+    np.testing.assert_allclose(
+        example.constraints(q, example.args) @ qdot, _sideways_velocities(example, q, qdot), rtol=0, atol=1e-14
+    )
+    # The trailers' kinematics allows exactly the motions that slip nowhere.
+    allowed = example.velocity(q, 1.3, -0.4)
+    assert float(jnp.max(jnp.abs(_sideways_velocities(example, q, allowed)))) < 1e-14
+    assert np.linalg.matrix_rank(np.asarray(example.constraints(q, example.args))) == 5
+
+
+def test_the_lone_tractor_rolls_as_the_knife_edge_on_an_inclined_plane():
+    """The form from the Lagrangian: errors at t = 2 against the closed form fall at
+    second order, and the energy and constraint stay at roundoff."""
+    example = nh.examples.tractor_trailers(0)
+    speed, turn_rate, t1 = 0.5, 0.8, 2.0
+    q0, p0 = example.initial_state(speed=speed, turn_rate=turn_rate)
+    exact = example.lone_tractor(t1, speed, turn_rate)
+    system = example.canonical_from_lagrangian
+    run = jax.jit(lambda h, n: nh.integrate(system, nh.GonzalezR(), (q0, p0), h, n, args=example.args,
+                                            max_steps=80, save_every=80))
+    errors = []
+    for steps in (20, 40, 80):
+        solution = run(t1 / steps, steps)
+        q, p = (y[-1] for y in solution.ys)
+        velocity = system.velocity(q, p, example.args)
+        speed_now = velocity[:2] @ jnp.array([jnp.cos(q[2]), jnp.sin(q[2])])
+        state = np.concatenate([np.asarray(q), [speed_now, velocity[2]]])
+        errors.append(np.max(np.abs(state - exact)))
+        assert relative_energy_error(solution) < 1e-14
+        assert float(jnp.max(jnp.abs(solution.constraint))) < 1e-14
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all((orders > 1.8) & (orders < 2.3)), (errors, orders)
+    assert errors[-1] < 3e-5
+
+
+def _reduced_equations(example):
+    r"""$(q, \nu)' $ with $\nu$ = (tractor speed, turning rate), $\dot q = S(q)\nu$
+    (`TractorTrailers.velocity`), and $S^T(M\ddot q + \dot M\dot q - \partial_qT
+    + \partial_qV) = 0$: the constraint forces, normal to $S$, drop out. $T$ and $V$
+    from the bodies' positions."""
+
+    def kinematics(q, nu):
+        return example.velocity(q, nu[0], nu[1])
+
+    def momentum(q, qdot):
+        return jax.grad(lambda v: _kinetic_energy(example, q, v))(qdot)
+
+    def field(t, state, args):
+        del t, args
+        q, nu = state[:-2], state[-2:]
+        frame = jax.jacfwd(lambda v: kinematics(q, v))(nu)
+        qdot = frame @ nu
+        metric = jax.jacfwd(lambda v: momentum(q, v))(qdot)
+        frame_rate = jax.jvp(lambda z: jax.jacfwd(lambda v: kinematics(z, v))(nu), (q,), (qdot,))[1]
+        momentum_rate = jax.jvp(lambda z: momentum(z, qdot), (q,), (qdot,))[1]
+        force = jax.grad(lambda z: _kinetic_energy(example, z, qdot) - _potential(example, z))(q)
+        rhs = -frame.T @ (metric @ frame_rate @ nu + momentum_rate - force)
+        return jnp.concatenate([qdot, jnp.linalg.solve(frame.T @ metric @ frame, rhs)])
+
+    return field
+
+
+def test_the_train_converges_to_its_reduced_equations_at_second_order():
+    """Three trailers to t = 2: GONZALEZ-R in canonical coordinates against Dopri8 on
+    the reduced equations at 1e-13, errors of positions and velocities falling at
+    second order; energy and constraints at roundoff; and the tractor, which no force turns about its axle's
+    midpoint, keeps its turning rate."""
+    example = nh.examples.tractor_trailers(3)
+    speed, turn_rate, t1 = 1.0, 0.3, 2.0
+    q0, p0 = example.initial_state(speed=speed, turn_rate=turn_rate)
+    reference = diffrax.diffeqsolve(
+        diffrax.ODETerm(_reduced_equations(example)), diffrax.Dopri8(), 0.0, t1, 0.01,
+        jnp.concatenate([q0, jnp.array([speed, turn_rate])]),
+        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13), max_steps=100_000,
+    ).ys[-1]
+    q1, (speed1, turn_rate1) = reference[:-2], reference[-2:]
+    expected = np.concatenate([np.asarray(q1), np.asarray(example.velocity(q1, speed1, turn_rate1))])
+    assert abs(float(q1[2]) - turn_rate * t1) < 1e-12 and abs(float(turn_rate1) - turn_rate) < 1e-12
+
+    system = example.canonical
+    # One program for every step count: n_steps traced up to a bound.
+    run = jax.jit(lambda h, n: nh.integrate(
+        system, nh.GonzalezR(), (q0, p0), h, n, args=example.args, max_steps=100, save_every=100
+    ))
+    errors = []
+    for steps in (25, 50, 100):
+        solution = run(t1 / steps, steps)
+        q, p = (y[-1] for y in solution.ys)
+        state = np.concatenate([np.asarray(q), np.asarray(system.velocity(q, p, example.args))])
+        errors.append(np.max(np.abs(state - expected)))
+        assert relative_energy_error(solution) < 1e-13
+        assert float(jnp.max(jnp.abs(solution.constraint))) < 1e-13
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all((orders > 1.8) & (orders < 2.3)), (errors, orders)
+    assert errors[-1] < 1e-5
