@@ -56,6 +56,25 @@ def test_metric_potential_and_constraints_are_those_of_the_bodies():
     assert np.linalg.matrix_rank(np.asarray(example.constraints(q, example.args))) == 5
 
 
+def _second_order_errors(example, system, y0, t1, step_counts, observed, expected, tolerance):
+    """GONZALEZ-R's distances at `t1` of `observed(q, p)` from `expected`, for each step
+    count (one program for all: `n_steps` traced up to a bound), checked to fall at
+    second order, with the energy and the constraint within `tolerance` at every save."""
+    bound = max(step_counts)
+    run = jax.jit(lambda h, n: nh.integrate(
+        system, nh.GonzalezR(), y0, h, n, args=example.args, max_steps=bound, save_every=bound
+    ))
+    errors = []
+    for steps in step_counts:
+        solution = run(t1 / steps, steps)
+        errors.append(np.max(np.abs(observed(*(y[-1] for y in solution.ys)) - expected)))
+        assert relative_energy_error(solution) < tolerance
+        assert float(jnp.max(jnp.abs(solution.constraint))) < tolerance
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all((orders > 1.8) & (orders < 2.3)), (errors, orders)
+    return errors
+
+
 def test_the_lone_tractor_rolls_as_the_knife_edge_on_an_inclined_plane():
     """The form from the Lagrangian: errors at t = 2 against the closed form fall at
     second order, and the energy and constraint stay at roundoff."""
@@ -64,20 +83,13 @@ def test_the_lone_tractor_rolls_as_the_knife_edge_on_an_inclined_plane():
     q0, p0 = example.initial_state(speed=speed, turn_rate=turn_rate)
     exact = example.lone_tractor(t1, speed, turn_rate)
     system = example.canonical_from_lagrangian
-    run = jax.jit(lambda h, n: nh.integrate(system, nh.GonzalezR(), (q0, p0), h, n, args=example.args,
-                                            max_steps=80, save_every=80))
-    errors = []
-    for steps in (20, 40, 80):
-        solution = run(t1 / steps, steps)
-        q, p = (y[-1] for y in solution.ys)
+
+    def observed(q, p):
         velocity = system.velocity(q, p, example.args)
         speed_now = velocity[:2] @ jnp.array([jnp.cos(q[2]), jnp.sin(q[2])])
-        state = np.concatenate([np.asarray(q), [speed_now, velocity[2]]])
-        errors.append(np.max(np.abs(state - exact)))
-        assert relative_energy_error(solution) < 1e-14
-        assert float(jnp.max(jnp.abs(solution.constraint))) < 1e-14
-    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
-    assert np.all((orders > 1.8) & (orders < 2.3)), (errors, orders)
+        return np.concatenate([np.asarray(q), [speed_now, velocity[2]]])
+
+    errors = _second_order_errors(example, system, (q0, p0), t1, (20, 40, 80), observed, exact, 1e-14)
     assert errors[-1] < 3e-5
 
 
@@ -126,18 +138,9 @@ def test_the_train_converges_to_its_reduced_equations_at_second_order():
     assert abs(float(q1[2]) - turn_rate * t1) < 1e-12 and abs(float(turn_rate1) - turn_rate) < 1e-12
 
     system = example.canonical
-    # One program for every step count: n_steps traced up to a bound.
-    run = jax.jit(lambda h, n: nh.integrate(
-        system, nh.GonzalezR(), (q0, p0), h, n, args=example.args, max_steps=100, save_every=100
-    ))
-    errors = []
-    for steps in (25, 50, 100):
-        solution = run(t1 / steps, steps)
-        q, p = (y[-1] for y in solution.ys)
-        state = np.concatenate([np.asarray(q), np.asarray(system.velocity(q, p, example.args))])
-        errors.append(np.max(np.abs(state - expected)))
-        assert relative_energy_error(solution) < 1e-13
-        assert float(jnp.max(jnp.abs(solution.constraint))) < 1e-13
-    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
-    assert np.all((orders > 1.8) & (orders < 2.3)), (errors, orders)
+
+    def observed(q, p):
+        return np.concatenate([np.asarray(q), np.asarray(system.velocity(q, p, example.args))])
+
+    errors = _second_order_errors(example, system, (q0, p0), t1, (25, 50, 100), observed, expected, 1e-13)
     assert errors[-1] < 1e-5
