@@ -2,22 +2,30 @@
 NonholonomicSystems against a dense implicit-midpoint yardstick of the same size, all
 timed in one process.
 
-The family (synthetic; a real one, such as a car pulling n trailers, is to come): n
-coordinates, k = n/4 constraint rows,
+Two families (`--family`), n coordinates each:
 
-    H = |p|^2/2 + |q|^2/2 + sum_i (1 - cos(q_i - q_{i-1})),
-    row j of A(q): 1 at 4j, sin(q_{4j+1}) at 4j+2, cos(q_{4j+3})/2 at 4j+3,
+- "synthetic" (the default): k = n/4 constraint rows,
 
-smooth and nonlinear, of full rank everywhere (row j alone has a 1 in column 4j). Steps
-of h = 0.05 from a fixed state on the constraint; the number of steps falls with n
-(`_steps`) so that the slowest runs stay within minutes.
+      H = |p|^2/2 + |q|^2/2 + sum_i (1 - cos(q_i - q_{i-1})),
+      row j of A(q): 1 at 4j, sin(q_{4j+1}) at 4j+2, cos(q_{4j+3})/2 at 4j+3,
+
+  smooth and nonlinear, of full rank everywhere (row j alone has a 1 in column 4j);
+  from a fixed state on the constraint.
+- "trailers", a real one: a tractor pulling n - 3 trailers down a slope
+  (`nhjax.examples.tractor_trailers`), k = n - 2 no-slip rows, a metric that depends on
+  q through every trailer's heading, H = p^T M(q)^{-1} p / 2 + V(q) with M written
+  out; from the example's usual start (the train on an arc, moving and turning).
+
+Steps of h = 0.05; the number of steps falls with n (`_steps`) so that the slowest runs
+stay within minutes.
 
 For each n and method: median µs/step (`--repeats` timed runs after a warm-up),
 root-finder iterations per step, seconds to trace, lower and compile (with XLA's default
 emitters, and with its loop emitter, `LOOP_EMITTER`), and the process's peak resident
 memory after the case (`ru_maxrss`, a high-water mark: it only grows). The yardstick
-solves y' = y + h f((y + y')/2), f = (p, -grad V(q)) of the same V, by three Newton
-iterations a step with a dense Jacobian (`jax.jacfwd`, `jnp.linalg.solve`). The fitted
+solves y' = y + h f((y + y')/2), f = (dH/dp, -dH/dq) of the same H with the constraint
+left out, by three Newton iterations a step with a dense Jacobian (`jax.jacfwd`,
+`jnp.linalg.solve`). The fitted
 growth exponent of each method is the slope of log(µs/step) against log(n) over the
 sizes from 16 on.
 
@@ -38,8 +46,9 @@ apart. For each target error, the cheapest run of each side that reaches it, and
 ratio.
 
 Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R] [--parts family,disk,scipy]
-Results go to benchmarks/results/scaling.json and a log-log plot beside it,
-scaling.png.
+[--family synthetic|trailers]. Results go to benchmarks/results/scaling.json (the
+trailers' under "trailers") and a log-log plot beside it, scaling.png (or
+scaling_trailers.png).
 """
 
 import argparse
@@ -92,12 +101,15 @@ def _steps(n):
     return max(20, 40_000 // n**2)
 
 
-def _yardstick(y0, steps):
+def _yardstick(hamiltonian, args, y0, steps):
+    """Dense implicit midpoint on y' = (dH/dp, -dH/dq), the constraint left out: three
+    Newton iterations a step with a `jax.jacfwd` Jacobian."""
     n = y0.shape[0] // 2
-    gradient = jax.grad(lambda q: hamiltonian(q, jnp.zeros_like(q), None))
+    gradient = jax.grad(lambda y: hamiltonian(y[:n], y[n:], args))
 
     def field(y):
-        return jnp.concatenate([y[n:], -gradient(y[:n])])
+        derivative = gradient(y)
+        return jnp.concatenate([derivative[n:], -derivative[:n]])
 
     def step(y, _):
         def newton(z, _):
@@ -109,6 +121,34 @@ def _yardstick(y0, steps):
         return jax.lax.scan(newton, y, None, length=3)[0], None
 
     return jax.lax.scan(step, y0, None, length=steps)[0]
+
+
+def _synthetic(n):
+    """The synthetic family's member of size n: (system, args, start, k)."""
+    return SYSTEM, None, initial_state(n), n // 4
+
+
+def _trailers(n):
+    """A tractor pulling n - 3 trailers (`nhjax.examples.tractor_trailers`), from its
+    usual start: (system, args, start, k)."""
+    example = nh.examples.tractor_trailers(n - 3)
+    return example.canonical, example.args, example.initial_state(), n - 2
+
+
+# Each family: its member of size n, what it is, and its plot's axis.
+FAMILIES = {
+    "synthetic": (
+        _synthetic,
+        "synthetic: H = |p|^2/2 + |q|^2/2 + sum(1 - cos(q_i - q_{i-1})), k = n/4 rows",
+        "n (coordinates), k = n/4 constraints",
+    ),
+    "trailers": (
+        _trailers,
+        "a tractor pulling n - 3 trailers down a slope (nhjax.examples.tractor_trailers), k = n - 2 rows, "
+        "a q-dependent metric",
+        "n (coordinates) = trailers + 3, k = n - 2 constraints",
+    ),
+}
 
 
 def _peak_mib():
@@ -147,6 +187,7 @@ def main():
     parser.add_argument("--sizes", default="4,8,16,32,64")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--parts", default="family,disk,scipy")
+    parser.add_argument("--family", choices=sorted(FAMILIES), default="synthetic")
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "scaling.json"))
     options = parser.parse_args()
     sizes = [int(size) for size in options.sizes.split(",")]
@@ -163,34 +204,53 @@ def main():
         write(results, options.out)
         return
 
+    family, description, axis = FAMILIES[options.family]
     table = {}
     for n in sizes:
         steps = _steps(n)
-        y0 = initial_state(n)
-        row = dict(k=n // 4, steps=steps)
-        _, row["yardstick"] = _case(jax.jit(lambda y: _yardstick(y, steps)), jnp.concatenate(y0), options.repeats, steps)
+        system, args, y0, k = family(n)
+        row = dict(k=k, steps=steps)
+        _, row["yardstick"] = _case(
+            jax.jit(lambda y: _yardstick(system.hamiltonian, args, y, steps)), jnp.concatenate(y0), options.repeats,
+            steps,
+        )
         for name, method in methods.items():
-            row[name] = _method_case(SYSTEM, method.solver, y0, H, steps, options.repeats)
+            row[name] = _method_case(system, method.solver, y0, H, steps, options.repeats, args)
         table[n] = row
         print(
-            f"n = {n:3d}, k = {n // 4:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
+            f"n = {n:3d}, k = {k:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
             + _method_columns(row, methods),
             flush=True,
         )
+        # Written after each size: the largest sizes take longest, and a run stopped
+        # there keeps the others.
+        growth = _record(results, options, table, description, ["yardstick", *methods])
 
-    large = [n for n in sizes if n >= 16]
+    for name, exponent in growth.items():
+        print(f"  {name:<18} grows like n^{exponent:.2f} from n = 16 on")
+    plot = pathlib.Path(options.out)
+    plot = plot.with_suffix(".png") if options.family == "synthetic" else plot.with_name(
+        f"{plot.stem}_{options.family}.png")
+    _plot(table, ["yardstick", *methods], plot, axis)
+
+
+def _record(results, options, table, description, names):
+    """The family's rows so far, with each method's fitted growth from n = 16 on, into
+    `results` and the JSON file (the synthetic family's at the top level, another's
+    under its name); returns the growth exponents."""
+    large = [n for n in table if n >= 16]
     growth = {}
-    for name in ["yardstick", *methods]:
+    for name in names:
         if len(large) >= 2:
             times = [table[n][name]["us_per_step"] for n in large]
             growth[name] = float(np.polyfit(np.log(large), np.log(times), 1)[0])
-    for name, exponent in growth.items():
-        print(f"  {name:<18} grows like n^{exponent:.2f} from n = {large[0]} to {large[-1]}")
-
-    results.update(system="synthetic: H = |p|^2/2 + |q|^2/2 + sum(1 - cos(q_i - q_{i-1})), k = n/4 rows", h=H,
-                   sizes=table, growth_exponent_from_16=growth)
+    figures = dict(system=description, h=H, sizes=table, growth_exponent_from_16=growth)
+    if options.family == "synthetic":
+        results.update(figures)
+    else:
+        results[options.family] = figures
     write(results, options.out)
-    _plot(table, ["yardstick", *methods], pathlib.Path(options.out).with_suffix(".png"))
+    return growth
 
 
 DISK_STEPS = 2000
@@ -307,7 +367,7 @@ def _against_scipy(repeats):
                 cheapest=cheapest)
 
 
-def _plot(table, names, path):
+def _plot(table, names, path, axis):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -317,7 +377,7 @@ def _plot(table, names, path):
     figure, axes = plt.subplots(figsize=(6, 4.5))
     for name in names:
         axes.loglog(sizes, [table[n][name]["us_per_step"] for n in sizes], "o-", label=name)
-    axes.set_xlabel("n (coordinates), k = n/4 constraints")
+    axes.set_xlabel(axis)
     axes.set_ylabel("µs per step")
     axes.set_title("Cost of a step against the size of the system")
     axes.legend(fontsize=8)
