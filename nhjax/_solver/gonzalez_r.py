@@ -34,6 +34,7 @@ steps against the implicit-midpoint yardstick and the NumPy route by
 
 from typing import Any, ClassVar, NamedTuple
 
+import equinox as eqx
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
@@ -107,6 +108,17 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         depends on $q$ its field derivative costs several iterations, and with the
         frame held fixed the matrix contracts by $O(h)$ whether it is fresh or a
         step old.
+    - `exact_chord_matrix`: `False` (default) for `chord_jacobian`'s matrix with the
+        frame held, `True` for the Jacobian of the residual without its correction
+        term by `jax.jacfwd`
+        ($N$ tangents through second derivatives of the QR), which contracts the
+        iteration by $O(h^3)$. Which is cheaper depends on how far the frame turns
+        within $\mathcal{D}$ and on $N$: at $h = 0.1$
+        (`benchmarks/gonzalez_r_variants.py`) the exact matrix takes a tractor pulling
+        5 trailers from 11.4 to 3.4 iterations a step and 0.59 of the time, Euler's
+        disk and the quartic with $n = 10$ to 0.62 and 0.74, but the synthetic system
+        with $n = 16$ to 1.79 and the gearbox to 1.11. The root is the same either
+        way, to the iteration's tolerance.
 
     **Small motions and wound angles.** For nearly equal $\zeta, \zeta'$ (motion too
     small for the values of $\mathcal{H}$ to resolve: oscillations of amplitude
@@ -157,9 +169,12 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
     reuse_chord_matrix: bool = False
+    exact_chord_matrix: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self):
         check_derivative(self.derivative)
+        if not isinstance(self.exact_chord_matrix, bool):
+            raise ValueError(f"GonzalezR: exact_chord_matrix must be True or False, got {self.exact_chord_matrix!r}.")
 
     def _reduced(self, system, signs, h, y0, args):
         step = None
@@ -307,7 +322,10 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         tangents through second derivatives of the QR, which cost more than the
         iterations they save from $n = 16$ on.
         The root does not depend on the matrix, and derivatives of the root do not use
-        it (see `nhjax._solver.chord`)."""
+        it (see `nhjax._solver.chord`). With `exact_chord_matrix`, that Jacobian by
+        `jax.jacfwd` instead."""
+        if self.exact_chord_matrix:
+            return super().chord_jacobian(u, data)
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args, frame_turn=True)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
