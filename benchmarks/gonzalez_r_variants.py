@@ -9,21 +9,23 @@ interleaved (A, B, C, A, B, C, ...) so that the machine's drift falls on all ali
 - `no predictor`: every step starts from no motion, as the first step of a run does
   (the chord iteration's first iterate then a linearly implicit Euler step);
 - `jacfwd chord matrix`: the generic `jax.jacfwd` of the simplified residual for the
-  chord matrix (what the method used before it had its own);
+  chord matrix (`GonzalezR(exact_chord_matrix=True)`);
 - `formed frame derivative`: $J = \partial_q(X^Tp)$ formed at every residual by
   `jax.jacfwd` through the QR ($n$ tangents), where the method takes the products
   $Jv$ and $J^Tw$ from one linearisation.
 
 On the gearbox, the quartic with n = 3 and n = 10, the synthetic system of
-`benchmarks/scaling.py` with n = 16 and Euler's disk at h = 0.1: median µs/step,
+`benchmarks/scaling.py` with n = 16, Euler's disk and a tractor pulling 5 trailers
+(n = 8, k = 6: `nhjax.examples.tractor_trailers`) at h = 0.1: median µs/step,
 root-finder iterations per step and compile time, and each variant's time as a ratio
 to the shipped method's.
 
-Run: python benchmarks/gonzalez_r_variants.py [--repeats 7]
+Run: python benchmarks/gonzalez_r_variants.py [--repeats 7] [--problems "5 trailers,gearbox"]
 Results go to benchmarks/results/gonzalez_r_variants.json.
 """
 
 import argparse
+import json
 import pathlib
 
 import jax
@@ -36,7 +38,6 @@ import nhjax as nh  # noqa: E402
 import scaling  # noqa: E402
 from _timing import run_and_time_interleaved, timed, write  # noqa: E402
 from nhjax._reduced import ReducedSystem  # noqa: E402
-from nhjax._solver.base import AbstractMethod  # noqa: E402
 
 
 class NoPredictor(nh.GonzalezR):
@@ -46,10 +47,6 @@ class NoPredictor(nh.GonzalezR):
         y1, carry = super().complete(u, data)
         unknown = jnp.full_like(carry.last_velocity, jnp.nan)
         return y1, carry._replace(last_velocity=unknown, earlier_velocity=unknown)
-
-
-class JacfwdChordMatrix(nh.GonzalezR):
-    chord_jacobian = AbstractMethod.chord_jacobian
 
 
 class _FormedFrameDerivativeReduced(ReducedSystem):
@@ -79,7 +76,7 @@ VARIANTS = {
     "GONZALEZ-R": nh.GonzalezR(),
     "no frame turn": _on_reduced(_NoFrameTurnReduced),
     "no predictor": NoPredictor(),
-    "jacfwd chord matrix": JacfwdChordMatrix(),
+    "jacfwd chord matrix": nh.GonzalezR(exact_chord_matrix=True),
     "formed frame derivative": _on_reduced(_FormedFrameDerivativeReduced),
 }
 
@@ -96,17 +93,25 @@ def _problems():
     problems["synthetic n = 16"] = (scaling.SYSTEM, scaling.initial_state(16), 100, None)
     disk = nh.examples.rolling_disk_3d()
     problems["Euler's disk"] = (disk.canonical, disk.state(**scaling.DISK_START), 500, disk.args)
+    train = nh.examples.tractor_trailers(5)
+    problems["5 trailers"] = (train.canonical, train.initial_state(), 100, train.args)
     return problems
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--problems", default=None, help="comma-separated names of the problems to run (default: all)")
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gonzalez_r_variants.json"))
     options = parser.parse_args()
 
-    results = {}
-    for problem, (system, y0, steps, args) in _problems().items():
+    problems = _problems()
+    chosen = list(problems) if options.problems is None else options.problems.split(",")
+    path = pathlib.Path(options.out)
+    # Problems not run this time keep their last results.
+    results = json.loads(path.read_text())["problems"] if path.exists() else {}
+    for problem in chosen:
+        system, y0, steps, args = problems[problem]
         runs, compile_s = {}, {}
         for name, method in VARIANTS.items():
             runs[name] = jax.jit(
