@@ -613,7 +613,12 @@ class AbstractMethod(diffrax.AbstractSolver):
         """The chord iteration of a step (constants only), with a fresh chord matrix or,
         for a method that reuses it (`reuses_chord_matrix`), the kept one where it
         serves: the solution (its iterations counting a repeat with a fresh matrix),
-        the matrix and inverse used, and the memory for the next step."""
+        the matrix and inverse used, and the memory for the next step.
+
+        The repeat is a second trip through the same loop, not a second copy of the
+        matrix and of the iteration: the step's program then holds one of each, as
+        without reuse (a copy of each made the program half as large again, and its
+        compilation as much slower)."""
         if memory is None:
             return *self._fresh_chord_root(root_finder, (guess, data)), None
         key = self.chord_key(data)
@@ -622,21 +627,24 @@ class AbstractMethod(diffrax.AbstractSolver):
             & (memory.last_iterations <= memory.fresh_iterations + 1)
             & jnp.all(jnp.isfinite(memory.inverse))
         )
-        jacobian, inverse = rarely(~kept, self._fresh_chord, (memory.jacobian, memory.inverse), (guess, data))
-        solution = self._chord_root(root_finder, guess, data, jacobian, inverse)
-        failed = (solution.result != optx.RESULTS.successful) | ~jnp.isfinite(solution.residual_size)
 
-        repeated = kept & failed
-        second, jacobian, inverse = rarely(
-            repeated,
-            lambda operands: self._fresh_chord_root(root_finder, operands),
-            (solution, jacobian, inverse),
-            (guess, data),
-        )
-        steps = jnp.where(repeated, solution.steps + second.steps, second.steps)
-        solution = ChordSolution(second.value, second.result, steps, second.residual_size)
-        fresh = ~kept | repeated
-        iterations = second.steps.astype(memory.last_iterations.dtype)
+        def attempt(carry):
+            trip, fresh, _, steps_before, _, jacobian, inverse = carry
+            jacobian, inverse = rarely(fresh, self._fresh_chord, (jacobian, inverse), (guess, data))
+            solution = self._chord_root(root_finder, guess, data, jacobian, inverse)
+            failed = (solution.result != optx.RESULTS.successful) | ~jnp.isfinite(solution.residual_size)
+            # A failure with a kept matrix is repeated with a fresh one.
+            repeat = ~fresh & failed
+            return trip + 1, jnp.asarray(True), repeat, steps_before + solution.steps, solution, jacobian, inverse
+
+        # The iteration counts in the default integer type, as the root finder's.
+        zero = jnp.asarray(0)
+        unstarted = ChordSolution(guess, optx.RESULTS.successful, zero, jnp.zeros((), guess.dtype))
+        start = (zero, ~kept, jnp.asarray(True), zero, unstarted, memory.jacobian, memory.inverse)
+        trips, _, _, steps, last, jacobian, inverse = lax.while_loop(lambda carry: carry[2], attempt, start)
+        solution = ChordSolution(last.value, last.result, steps, last.residual_size)
+        fresh = ~kept | (trips > 1)
+        iterations = last.steps.astype(memory.last_iterations.dtype)
         memory = ChordMemory(
             jacobian,
             inverse,
