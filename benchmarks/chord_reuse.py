@@ -7,7 +7,8 @@ with H from its mass matrix and from its Lagrangian (h = 0.01), the disk's mass-
 as a batch of 32 trajectories under `jax.vmap` (momenta scaled by 1 to 1.01: under
 `vmap` a step forms the whole batch's matrices when any trajectory needs a fresh one,
 `nhjax._rare_branch.rarely`), the synthetic systems of
-`scaling.py` at n = 16 and 64 (h = 0.05); the collocation of order 4, 6 and 8 on the
+`scaling.py` at n = 16, 32 and 64 and a tractor pulling 5 trailers (h = 0.05: n = 8,
+k = 6, a metric that depends on q); the collocation of order 4, 6 and 8 on the
 quartic and of order 6 and 8 on the gearbox, at the step sizes where
 `composition.py` finds them cheapest. For each: µs/step (median) both ways and their
 ratio, iterations per step both ways, chord matrices formed per step when kept, and the
@@ -51,7 +52,12 @@ def _cases():
     cases[f"GONZALEZ-R, Euler's disk (mass-matrix H), batch of {_BATCH}"] = (
         disk.canonical, batch, disk.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep), 0.01, 200
     )
-    for n, steps in ((16, 100), (64, 20)):
+    trailers = nh.examples.tractor_trailers(5)
+    cases["GONZALEZ-R, tractor pulling 5 trailers"] = (
+        trailers.canonical, trailers.initial_state(), trailers.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep),
+        scaling.H, 200,
+    )
+    for n, steps in ((16, 100), (32, 50), (64, 20)):
         cases[f"GONZALEZ-R, synthetic n = {n}"] = (
             scaling.SYSTEM, scaling.initial_state(n), None, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep),
             scaling.H, steps,

@@ -32,7 +32,7 @@ class Solution(eqx.Module):
         trajectory has NaN derivatives.
     - `stats`: `num_steps` (steps taken), `root_find_steps` (root-finder iterations in
         all), `max_root_find_steps` (most iterations in one step); for a method
-        that keeps its chord matrix (`reuse_chord_matrix=True`), `chord_matrices`
+        that keeps its chord matrix (`nhjax.AbstractMethod.reuses_chord_matrix`), `chord_matrices`
         (the matrices formed); for an `nhjax.Composition`, also
         `substep_root_find_steps` and `failed_substep` (see there).
     - `work`, `dissipated`: the energy the force supplied and the energy the

@@ -200,6 +200,16 @@ class AbstractCountingState(AbstractMethodState):
 # t1 - t0 from accumulated times differs from the last one by rounding, and a matrix
 # serves as well for it; the substeps of a composition differ by factors of order one.
 CHORD_KEY_TOLERANCE = 1e-6
+# A kept chord matrix serves at most this many steps: the same steps for every
+# trajectory of a batch, so that under `vmap` the batch forms fresh matrices at steps
+# where every trajectory takes one (`AbstractMethod.reuses_chord_matrix`). With
+# GONZALEZ-R (`benchmarks/chord_reuse.py`) a batch of 32 Euler's disks then takes 0.89
+# of the time of a fresh matrix at every step, where it took 1.06 to 1.17 when each
+# trajectory replaced its matrix once its iterations grew by more than one, at steps of
+# its own. The looser bound on the iterations (`_chord_solve`) costs where a matrix goes
+# stale within a few steps: the gearbox took 1.47 with a kept matrix, 0.92 to 1.15 with
+# the tighter one.
+KEPT_STEPS = 16
 
 
 def step_key(h, dtype=None, signs: Float[Array, " k"] | None = None) -> Float[Array, " c"]:
@@ -213,14 +223,15 @@ class ChordMemory(eqx.Module):
     """The chord matrix of the last step and its inverse, kept for the next step
     (`AbstractMethod.reuses_chord_matrix`): `key`, what it was formed for
     (`AbstractMethod.chord_key`; NaN before the first step, so that it matches
-    nothing); the iterations the step that formed it took, those of the last step, and
-    the chord matrices formed so far."""
+    nothing); the iterations the step that formed it took, those of the last step, the
+    steps it has served (`age`), and the chord matrices formed so far."""
 
     jacobian: Float[Array, "u u"]
     inverse: Float[Array, "u u"]
     key: Float[Array, " c"]
     fresh_iterations: Int[Array, ""]
     last_iterations: Int[Array, ""]
+    age: Int[Array, ""]
     formed: Int[Array, ""]
 
 
@@ -411,22 +422,25 @@ class AbstractMethod(diffrax.AbstractSolver):
         del data
         return None
 
-    def reuses_chord_matrix(self) -> bool:
+    def reuses_chord_matrix(self, system: AbstractSystem, y0: PyTree[Array], args: Any) -> bool:
         r"""Whether a step starts from the last step's chord matrix and its inverse
         (`ChordMemory`) instead of forming them, as implicit Runge--Kutta codes keep
         their simplified-Newton matrix over steps (Hairer & Wanner, *Solving ODEs II*,
         §IV.8). A kept matrix is used while it was formed for the same `chord_key` (the
         step size, and whatever else it depends on; to `CHORD_KEY_TOLERANCE`, as step
-        sizes from accumulated times differ by rounding) and the last step took at
-        most one iteration more than the step that formed it; a root find that fails
-        with a kept matrix is repeated with a fresh one. So only the iteration count,
+        sizes from accumulated times differ by rounding), for at most `KEPT_STEPS`
+        steps, and while the last step took at most one iteration more than twice
+        those of the step that formed it; a root find that fails with a kept matrix is
+        repeated with a fresh one. So only the iteration count,
         not the root (to the root finder's tolerance) or whether a step succeeds,
         depends on it, and derivatives, which come from the implicit function theorem
         with the exact Jacobian, not at all. It pays where forming the matrix costs several
         iterations (a metric that depends on $q$, many unknowns), and costs where the
         extra iterations a kept matrix needs are dear against it
-        (`benchmarks/chord_reuse.py` measures both). Default: no; the methods that
-        offer it take `reuse_chord_matrix=True`."""
+        (`benchmarks/chord_reuse.py` measures both). Decided once for a run, from
+        its system, start and `args` (at trace time). Default: no; the methods that
+        offer it take `reuse_chord_matrix`."""
+        del system, y0, args
         return False
 
     def chord_key(self, data: Any) -> Float[Array, " c"]:
@@ -438,18 +452,20 @@ class AbstractMethod(diffrax.AbstractSolver):
     def init(self, terms, t0, t1, y0, args) -> MethodState:
         system, _ = self.system_and_step(terms, t0, t1)
         zero = jnp.array(0, dtype=jnp.int32)
-        carry = self.initial_carry(system, unledgered(y0), args)
+        state = unledgered(y0)
+        carry = self.initial_carry(system, state, args)
         chord = None
-        if self.reuses_chord_matrix() and isinstance(self._root_finder(jax.tree.leaves(y0)[0].dtype), PresetChord):
+        chord_finder = isinstance(self._root_finder(jax.tree.leaves(y0)[0].dtype), PresetChord)
+        if chord_finder and self.reuses_chord_matrix(system, state, args):
 
             def unknowns_and_key():
-                guess, data = self.setup(system, t0, t1 - t0, unledgered(y0), args, carry)
+                guess, data = self.setup(system, t0, t1 - t0, state, args, carry)
                 return guess, self.chord_key(data)
 
             unknowns, key = jax.eval_shape(unknowns_and_key)
             size, dtype = unknowns.shape[0], unknowns.dtype
             empty = jnp.full((size, size), jnp.nan, dtype)
-            chord = ChordMemory(empty, empty, jnp.full(key.shape, jnp.nan, key.dtype), zero, zero, zero)
+            chord = ChordMemory(empty, empty, jnp.full(key.shape, jnp.nan, key.dtype), zero, zero, zero, zero)
         return MethodState(zero, zero, RESULTS.successful, carry, chord)
 
     def func(self, terms, t0, y0, args):
@@ -624,7 +640,8 @@ class AbstractMethod(diffrax.AbstractSolver):
         key = self.chord_key(data)
         kept = (
             jnp.all(jnp.abs(memory.key - key) <= CHORD_KEY_TOLERANCE * jnp.abs(key))
-            & (memory.last_iterations <= memory.fresh_iterations + 1)
+            & (memory.age < KEPT_STEPS)
+            & (memory.last_iterations <= 2 * memory.fresh_iterations + 1)
             & jnp.all(jnp.isfinite(memory.inverse))
         )
 
@@ -651,6 +668,7 @@ class AbstractMethod(diffrax.AbstractSolver):
             key,
             jnp.where(fresh, iterations, memory.fresh_iterations),
             iterations,
+            jnp.where(fresh, 1, memory.age + 1).astype(memory.age.dtype),
             memory.formed + fresh.astype(memory.formed.dtype),
         )
         return solution, jacobian, inverse, memory

@@ -376,8 +376,9 @@ class EnergyPreservingCollocation(AbstractMethod):
         )
         return jacobian, inverse.transpose(0, 2, 1, 3).reshape(u.shape[0], u.shape[0]).astype(u.dtype)
 
-    def reuses_chord_matrix(self) -> bool:
+    def reuses_chord_matrix(self, system, y0, args) -> bool:
         """`reuse_chord_matrix` (see `nhjax.AbstractMethod.reuses_chord_matrix`)."""
+        del system, y0, args
         return self.reuse_chord_matrix
 
     def chord_key(self, data):

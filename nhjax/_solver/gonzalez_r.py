@@ -5,7 +5,8 @@ evaluated from $H$ and $A$ alone.
 the field with the frame formed once at the predictor's midpoint, held to first
 order and turned along the velocity, from derivatives of $H$ and $A$ and one tangent
 through the QR, and its inverse,
-`nhjax._solver.chord.chord_inverse`), then four to eleven residuals at the step sizes of
+`nhjax._solver.chord.chord_inverse`), or the last step's where it is kept
+(`reuse_chord_matrix`), then four to eleven residuals at the step sizes of
 `benchmarks/gonzalez_r_variants.py`. A residual is the
 field at the midpoint, $\Pi\bar\nabla\mathcal{H}$, and $\mathcal{H}$ at $\zeta'$ for the
 Gonzalez correction. The field needs the frame only through products with $X$ and
@@ -35,6 +36,7 @@ steps against the implicit-midpoint yardstick and the NumPy route by
 from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
+import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
@@ -45,6 +47,13 @@ from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, metric_of, ReducedSystem
 from .chord import REMAINDER
 from .base import AbstractSymmetricSecondOrderMethod, increment_scale, resolution_of, step_key
+
+
+# Above this many unknowns a fresh chord matrix (N tangents of the field, an N x N
+# inverse) costs several iterations even where the metric is constant: with the
+# synthetic systems of `benchmarks/scaling.py`, keeping it takes n = 64 (N = 112) 0.51
+# to 0.81 of the time from run to run, but n = 16 and 32 anything from 0.70 to 1.05.
+KEPT_ABOVE_UNKNOWNS = 64
 
 
 class _Carry(NamedTuple):
@@ -104,10 +113,20 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     - `difference_step`: the finite-difference increment, `None` for $|h|$.
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
     - `reuse_chord_matrix`: start each step from the last step's chord matrix while
-        it serves (`nhjax.AbstractMethod.reuses_chord_matrix`): where the metric
-        depends on $q$ its field derivative costs several iterations, and with the
-        frame held fixed the matrix contracts by $O(h)$ whether it is fresh or a
-        step old.
+        it serves (`nhjax.AbstractMethod.reuses_chord_matrix`): with the frame held
+        fixed the matrix contracts by $O(h)$ whether it is fresh or a step old.
+        `None` (default): kept where forming it costs several iterations, that is
+        where the metric depends on $q$ (its matrix differentiates $M(q)^{-1}$ along
+        each of its $N = 2n - k$ tangents) or where the unknowns are more than
+        `KEPT_ABOVE_UNKNOWNS` (an $N \times N$ Jacobian and inverse); `True` or
+        `False` to choose. Measured both ways by `benchmarks/chord_reuse.py`: kept,
+        Euler's disk takes 0.69 of the time ($H$ from its mass matrix; 0.77 from its
+        Lagrangian), a batch of 32 disks under `vmap` 0.89, a tractor pulling 5
+        trailers 0.45, the synthetic system of `benchmarks/scaling.py` with $n = 64$
+        ($N = 112$) 0.78, with $n = 16$ and $32$ 0.98 and 0.95; the gearbox 1.47 and
+        the quartic with $n = 3$ 1.23, where an iteration is dear against a matrix.
+        The kept matrix's branch adds to the compilation (about 1.5 s for Euler's
+        disk).
     - `exact_chord_matrix`: `False` (default) for `chord_jacobian`'s matrix with the
         frame held, `True` for the Jacobian of the residual without its correction
         term by `jax.jacfwd`
@@ -168,11 +187,15 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     difference_step: float | None = None
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
-    reuse_chord_matrix: bool = False
+    reuse_chord_matrix: bool | None = None
     exact_chord_matrix: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self):
         check_derivative(self.derivative)
+        if not (self.reuse_chord_matrix is None or isinstance(self.reuse_chord_matrix, bool)):
+            raise ValueError(
+                f"GonzalezR: reuse_chord_matrix must be None, True or False, got {self.reuse_chord_matrix!r}."
+            )
         if not isinstance(self.exact_chord_matrix, bool):
             raise ValueError(f"GonzalezR: exact_chord_matrix must be True or False, got {self.exact_chord_matrix!r}.")
 
@@ -285,9 +308,17 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     def root_find_residual(self, u, data):
         return self.residual(u, data, branch="rarely")
 
-    def reuses_chord_matrix(self) -> bool:
-        """`reuse_chord_matrix` (see `nhjax.AbstractMethod.reuses_chord_matrix`)."""
-        return self.reuse_chord_matrix
+    def reuses_chord_matrix(self, system: NonholonomicSystem, y0, args) -> bool:
+        """`reuse_chord_matrix`, or where it is `None`, whether the metric depends on
+        $q$ or the reduced system has more than `KEPT_ABOVE_UNKNOWNS` unknowns (see
+        the class docstring)."""
+        if self.reuse_chord_matrix is not None:
+            return self.reuse_chord_matrix
+        q, _ = y0
+        metric = metric_of(system, y0, args)
+        constraints = jax.eval_shape(system.constraints, q, args).shape[0]
+        on_position = isinstance(metric, str) and metric == "position"
+        return on_position or 2 * q.shape[0] - constraints > KEPT_ABOVE_UNKNOWNS
 
     def chord_key(self, data):
         """The step size and the frame's signs, for which the chord matrix holds."""

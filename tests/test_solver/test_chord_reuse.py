@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import nhjax as nh
-from nhjax._solver.base import ChordMemory, no_gradient
+from nhjax._solver.base import ChordMemory, KEPT_STEPS, no_gradient
 
 from ..helpers import canonical_starts, relative_energy_error
 
@@ -18,7 +18,11 @@ STARTS = canonical_starts()
 # (label, fresh, kept): a q-dependent metric for GONZALEZ-R, and the collocation.
 CASES = {
     "GONZALEZ-R, sleigh": (
-        "sleigh, q-dependent M", nh.GonzalezR(), nh.GonzalezR(reuse_chord_matrix=True), 0.1, 200
+        "sleigh, q-dependent M",
+        nh.GonzalezR(reuse_chord_matrix=False),
+        nh.GonzalezR(reuse_chord_matrix=True),
+        0.1,
+        200,
     ),
     "collocation 4, quartic": (
         "quartic, n = 7",
@@ -48,6 +52,33 @@ def test_a_kept_matrix_changes_the_iterations_not_the_run(case):
     assert _distance(run.ys, reference.ys) <= 1e-12
     assert relative_energy_error(run) <= 1e-13
     assert float(jnp.max(jnp.abs(run.constraint))) <= 1e-14
+
+
+def test_gonzalez_r_keeps_its_matrix_where_forming_it_is_dear():
+    """By default GONZALEZ-R keeps its chord matrix where the metric depends on q or
+    the reduced system has more than `KEPT_ABOVE_UNKNOWNS` unknowns, and not
+    elsewhere; `True` and `False` choose."""
+    sleigh, y0 = STARTS["sleigh, q-dependent M"]
+    run = nh.integrate(sleigh.canonical, nh.GonzalezR(), y0, 0.1, 20, args=sleigh.args)
+    assert 1 <= int(run.stats["chord_matrices"]) < 20
+    gearbox, start = STARTS["gearbox, M = I"]
+    assert not nh.GonzalezR().reuses_chord_matrix(gearbox.canonical, start, gearbox.args)
+    assert nh.GonzalezR(reuse_chord_matrix=True).reuses_chord_matrix(gearbox.canonical, start, gearbox.args)
+    assert not nh.GonzalezR(reuse_chord_matrix=False).reuses_chord_matrix(sleigh.canonical, y0, sleigh.args)
+
+    def unit_metric_system(n):
+        # M = I and n / 4 rows: 2n - n/4 unknowns.
+        def constraints(q, args):
+            del args
+            return jnp.eye(n, dtype=q.dtype)[: n // 4] * jnp.cos(q)
+
+        return nh.NonholonomicSystem(lambda q, p, args: 0.5 * p @ p + jnp.sum(jnp.cos(q)), constraints)
+
+    for n, kept in ((36, False), (40, True)):  # 63 and 70 unknowns
+        q = jnp.linspace(0.1, 0.5, n)
+        assert nh.GonzalezR().reuses_chord_matrix(unit_metric_system(n), (q, jnp.zeros(n)), None) == kept
+    with pytest.raises(ValueError, match="reuse_chord_matrix"):
+        nh.GonzalezR(reuse_chord_matrix="yes")
 
 
 def test_a_batch_keeps_each_trajectory_s_own_matrix():
@@ -114,7 +145,7 @@ def test_a_failing_kept_matrix_is_replaced_by_a_fresh_one():
     one = jnp.array(1, jnp.int32)
     # A matrix for this step size that cannot move the iterate: the root find fails
     # with it (too many iterations) and is done again with a fresh one.
-    useless = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps, one)
+    useless = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps, one, one)
     solution, _, used, memory = kept._chord_solve(root_finder, guess, data, useless)
     assert solution.result == fresh.result
     # Formed in a branch of its own, so rounded apart from the fresh one above.
@@ -122,18 +153,21 @@ def test_a_failing_kept_matrix_is_replaced_by_a_fresh_one():
     np.testing.assert_allclose(used, inverse, rtol=0, atol=1e-15)
     assert int(solution.steps) == kept.root_find_max_steps + int(fresh.steps)
     assert int(memory.formed) == 2 and int(memory.fresh_iterations) == int(fresh.steps)
-    # A matching key, but the last step needed two iterations more than the matrix's
-    # first: formed afresh before the root find.
-    slow = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps + 2, one)
-    solution, _, used, memory = kept._chord_solve(root_finder, guess, data, slow)
-    np.testing.assert_allclose(used, inverse, rtol=0, atol=1e-15)
-    assert int(solution.steps) == int(fresh.steps) and int(memory.formed) == 2
+    # A matching key, but the last step needed more than one iteration more than
+    # twice the matrix's first, or the matrix has served `KEPT_STEPS` steps: formed
+    # afresh before the root find.
+    slow = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, 2 * fresh.steps + 2, one, one)
+    old = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps, one * KEPT_STEPS, one)
+    for memory in (slow, old):
+        solution, _, used, memory = kept._chord_solve(root_finder, guess, data, memory)
+        np.testing.assert_allclose(used, inverse, rtol=0, atol=1e-15)
+        assert int(solution.steps) == int(fresh.steps) and int(memory.formed) == 2 and int(memory.age) == 1
     # One that serves is used as it is, also for a step size that differs by rounding.
     for rounded in (key, key * (1 + 4e-16)):
-        good = ChordMemory(jacobian, inverse, rounded, fresh.steps, fresh.steps, one)
+        good = ChordMemory(jacobian, inverse, rounded, fresh.steps, 2 * fresh.steps + 1, one * (KEPT_STEPS - 1), one)
         solution, _, used, memory = kept._chord_solve(root_finder, guess, data, good)
         np.testing.assert_array_equal(solution.value, fresh.value)
-        assert int(memory.formed) == 1
+        assert int(memory.formed) == 1 and int(memory.age) == KEPT_STEPS
     # Not for another step size.
-    other = ChordMemory(jacobian, inverse, key * 1.01, fresh.steps, fresh.steps, one)
+    other = ChordMemory(jacobian, inverse, key * 1.01, fresh.steps, fresh.steps, one, one)
     assert int(kept._chord_solve(root_finder, guess, data, other)[3].formed) == 2
