@@ -127,7 +127,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         the quartic with $n = 3$ 1.23, where an iteration is dear against a matrix.
         The kept matrix's branch adds to the compilation (about 1.5 s for Euler's
         disk).
-    - `exact_chord_matrix`: `False` (default) for `chord_jacobian`'s matrix with the
+    - `exact_chord_matrix`: `False` for `chord_jacobian`'s matrix with the
         frame held, `True` for the Jacobian of the residual without its correction
         term by `jax.jacfwd`
         ($N$ tangents through second derivatives of the QR), which contracts the
@@ -137,7 +137,10 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         5 trailers from 11.4 to 3.4 iterations a step and 0.59 of the time, Euler's
         disk and the quartic with $n = 10$ to 0.62 and 0.74, but the synthetic system
         with $n = 16$ to 1.79 and the gearbox to 1.11. The root is the same either
-        way, to the iteration's tolerance.
+        way, to the iteration's tolerance. `None` (default): the exact matrix where
+        the metric depends on $q$ and the matrix is kept (`reuse_chord_matrix` not
+        `False`), where its cost is spread over the steps it serves and its faster
+        contraction outlasts them; the matrix with the frame held elsewhere.
 
     **Small motions and wound angles.** For nearly equal $\zeta, \zeta'$ (motion too
     small for the values of $\mathcal{H}$ to resolve: oscillations of amplitude
@@ -188,7 +191,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
     reuse_chord_matrix: bool | None = None
-    exact_chord_matrix: bool = eqx.field(default=False, static=True)
+    exact_chord_matrix: bool | None = eqx.field(default=None, static=True)
 
     def __check_init__(self):
         check_derivative(self.derivative)
@@ -196,8 +199,10 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
             raise ValueError(
                 f"GonzalezR: reuse_chord_matrix must be None, True or False, got {self.reuse_chord_matrix!r}."
             )
-        if not isinstance(self.exact_chord_matrix, bool):
-            raise ValueError(f"GonzalezR: exact_chord_matrix must be True or False, got {self.exact_chord_matrix!r}.")
+        if not (self.exact_chord_matrix is None or isinstance(self.exact_chord_matrix, bool)):
+            raise ValueError(
+                f"GonzalezR: exact_chord_matrix must be None, True or False, got {self.exact_chord_matrix!r}."
+            )
 
     def _reduced(self, system, signs, h, y0, args):
         step = None
@@ -355,11 +360,19 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         The root does not depend on the matrix, and derivatives of the root do not use
         it (see `nhjax._solver.chord`). With `exact_chord_matrix`, that Jacobian by
         `jax.jacfwd` instead."""
-        if self.exact_chord_matrix:
+        if self.uses_exact_chord_matrix(data):
             return super().chord_jacobian(u, data)
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args, frame_turn=True)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
+
+    def uses_exact_chord_matrix(self, data) -> bool:
+        """`exact_chord_matrix`, or where it is `None`, whether the metric depends on
+        $q$ and the matrix may be kept (see the class docstring)."""
+        if self.exact_chord_matrix is not None:
+            return self.exact_chord_matrix
+        metric = data.reduced.metric
+        return self.reuse_chord_matrix is not False and isinstance(metric, str) and metric == "position"
 
     def resolution(self, data):
         return resolution_of(data.zeta, data.scale), data.scale

@@ -162,7 +162,8 @@ def test_the_frame_turn_sets_the_chord_iterations_contraction():
 def test_the_exact_chord_matrix_finds_the_same_steps_in_fewer_iterations():
     """On a tractor pulling 3 trailers (k = 4 of n = 6: the frame of D turns fast within
     it), `exact_chord_matrix=True` takes the same steps to roundoff in fewer than half
-    the iterations of the matrix with the frame held; anything but a bool is refused."""
+    the iterations of the matrix with the frame held; anything but a bool or `None`
+    is refused."""
     train = nh.examples.tractor_trailers(3)
     y0 = train.initial_state()
     # Each matrix formed at every step: a kept one would be a step old.
@@ -174,8 +175,19 @@ def test_the_exact_chord_matrix_finds_the_same_steps_in_fewer_iterations():
         np.testing.assert_allclose(exact, held, rtol=0, atol=1e-11)
     iterations = {exact: float(run.stats["root_find_steps"]) / 20 for exact, run in runs.items()}
     assert iterations[True] < 0.5 * iterations[False] and iterations[True] < 5, iterations
-    with pytest.raises(ValueError, match="exact_chord_matrix must be True or False"):
+    with pytest.raises(ValueError, match="exact_chord_matrix must be None, True or False"):
         nh.GonzalezR(exact_chord_matrix="yes")
+
+    # By default: exact where the metric depends on q and the matrix is kept.
+    def exact_by_default(method, example, start):
+        carry = method.initial_carry(example.canonical, start, example.args)
+        data = method.setup(example.canonical, 0.0, 0.1, start, example.args, carry)[1]
+        return method.uses_exact_chord_matrix(data)
+
+    gearbox = nh.examples.gearbox()
+    assert exact_by_default(nh.GonzalezR(), train, y0)
+    assert not exact_by_default(nh.GonzalezR(reuse_chord_matrix=False), train, y0)
+    assert not exact_by_default(nh.GonzalezR(), gearbox, gearbox.start("canonical"))
 
 
 def test_predictor_is_third_order_once_two_steps_are_known():
