@@ -34,6 +34,12 @@ from _timing import options, run_and_time_interleaved, write  # noqa: E402
 _BATCH = 32
 
 
+def _gonzalez_r(keep):
+    """GONZALEZ-R with its chord matrix kept or formed at every step, the frame held
+    either way."""
+    return nh.GonzalezR(reuse_chord_matrix=keep, exact_chord_matrix=False)
+
+
 def _cases():
     gearbox, quartic = nh.examples.gearbox(), nh.examples.chaotic_quartic(3)
     sleigh, disk = nh.examples.chaplygin_sleigh(), nh.examples.rolling_disk_3d()
@@ -44,24 +50,24 @@ def _cases():
     }
     cases = {}
     for name, problem in paper.items():
-        cases[f"GONZALEZ-R, {name}"] = (*problem, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep, exact_chord_matrix=False), 0.1, 1000)
+        cases[f"GONZALEZ-R, {name}"] = (*problem, _gonzalez_r, 0.1, 1000)
     for name, system in (("mass-matrix H", disk.canonical), ("Lagrangian", disk.canonical_from_lagrangian)):
         cases[f"GONZALEZ-R, Euler's disk ({name})"] = (
-            system, disk.initial_state(), disk.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep, exact_chord_matrix=False), 0.01, 500
+            system, disk.initial_state(), disk.args, _gonzalez_r, 0.01, 500
         )
     q0, p0 = disk.initial_state()
     batch = (jnp.broadcast_to(q0, (_BATCH, *q0.shape)), p0 * (1 + 0.01 * jnp.arange(_BATCH) / _BATCH)[:, None])
     cases[f"GONZALEZ-R, Euler's disk (mass-matrix H), batch of {_BATCH}"] = (
-        disk.canonical, batch, disk.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep, exact_chord_matrix=False), 0.01, 200
+        disk.canonical, batch, disk.args, _gonzalez_r, 0.01, 200
     )
     trailers = nh.examples.tractor_trailers(5)
     cases["GONZALEZ-R, tractor pulling 5 trailers"] = (
-        trailers.canonical, trailers.initial_state(), trailers.args, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep, exact_chord_matrix=False),
+        trailers.canonical, trailers.initial_state(), trailers.args, _gonzalez_r,
         scaling.H, 200,
     )
     for n, steps in ((16, 100), (32, 50), (64, 20)):
         cases[f"GONZALEZ-R, synthetic n = {n}"] = (
-            scaling.SYSTEM, scaling.initial_state(n), None, lambda keep: nh.GonzalezR(reuse_chord_matrix=keep, exact_chord_matrix=False),
+            scaling.SYSTEM, scaling.initial_state(n), None, _gonzalez_r,
             scaling.H, steps,
         )
     for name, orders in (("quartic n = 3", ((4, 200), (6, 100), (8, 40))), ("gearbox", ((6, 50), (8, 32)))):
