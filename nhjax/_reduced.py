@@ -97,6 +97,12 @@ def metric_of(system, y0, args):
     return jnp.asarray(np.linalg.inv(inverse), dtype=q.dtype)
 
 
+def metric_is(metric, kind: str) -> bool:
+    """Whether `metric` (as `metric_of` gives it) is of the `kind` `"position"` or
+    `"identity"`, not an array."""
+    return isinstance(metric, str) and metric == kind
+
+
 class ReducedPoint(NamedTuple):
     r"""What the reduced field needs at one point $\zeta = (q, \rho)$: the frame
     $X(q)$ (not formed), the momentum $p(\zeta)$, $\nabla\mathcal{H}(\zeta)$, and
@@ -189,15 +195,12 @@ class ReducedSystem(eqx.Module):
         if self.derivative == "central_difference" and self.difference_step is None:
             raise ValueError('derivative="central_difference" needs a difference_step.')
 
-    def _identity_metric(self) -> bool:
-        return isinstance(self.metric, str) and self.metric == "identity"
-
     def momentum_in_frame(self, q, frame: HouseholderFrame, rho, args):
         """`momentum_in_frame` with this system's metric at `q`; for a metric that
         depends on $q$, `momentum_by_projection`."""
-        if self._identity_metric():
+        if metric_is(self.metric, "identity"):
             return momentum_in_frame(frame, rho)
-        if isinstance(self.metric, str):  # "position"
+        if metric_is(self.metric, "position"):
             return momentum_by_projection(self.system, q, frame, rho, args)
         return momentum_in_frame(frame, rho, self.metric)
 
@@ -216,7 +219,7 @@ class ReducedSystem(eqx.Module):
         return q, self.momentum_in_frame(q, self.frame(q, args), rho, args)[0]
 
     def hamiltonian(self, zeta, args) -> Float[Array, ""]:
-        if self._identity_metric():
+        if metric_is(self.metric, "identity"):
             q, rho = split_reduced(zeta, self.signs)
             return self.system.hamiltonian(q, jnp.zeros_like(q), args) + 0.5 * rho @ rho
         q, p = self.from_reduced(zeta, args)
@@ -226,7 +229,7 @@ class ReducedSystem(eqx.Module):
         r"""What `energy_segment` needs of a step's start $\zeta$:
         $\mathcal{H}(\zeta)$, and the canonical momentum $p(\zeta)$ (`None` for
         $M = I$, whose $\mathcal{H}$ needs none)."""
-        if self._identity_metric():
+        if metric_is(self.metric, "identity"):
             return self.hamiltonian(zeta, args), None
         q, p = self.from_reduced(zeta, args)
         return self.system.hamiltonian(q, p, args), p
@@ -242,7 +245,7 @@ class ReducedSystem(eqx.Module):
         $p' = p(\zeta')$, with $\nabla H$ of the user's $H$ ($\mathcal{H}(\zeta) =
         H(q, p(\zeta))$, so the two differences are one; the frame at $q'$ that $p'$
         needs is the one $\mathcal{H}(\zeta')$ needs anyway)."""
-        if self._identity_metric():
+        if metric_is(self.metric, "identity"):
             return self.hamiltonian(zeta1, args), (self.reduced_gradient, zeta, zeta1)
         q, _ = split_reduced(zeta, self.signs)
         q1, p1 = self.from_reduced(zeta1, args)
@@ -263,7 +266,7 @@ class ReducedSystem(eqx.Module):
         r"""$\partial_qH(q, p)$ at fixed $p$, the first term of (eq:Htgrad); for $M = I$
         $\partial_qH(q, 0)$, the whole $\partial_q\mathcal{H}$ (see the class
         docstring), which needs no momentum."""
-        if self._identity_metric():
+        if metric_is(self.metric, "identity"):
             return jax.grad(self.system.hamiltonian)(q, jnp.zeros_like(q), args)
         return jax.grad(self.system.hamiltonian)(q, p, args)
 
@@ -310,7 +313,7 @@ class ReducedSystem(eqx.Module):
             times = lambda v: product(contracted, v)  # noqa: E731
             transpose_times = lambda w: product(w, contracted)  # noqa: E731
         grad_q = self.position_gradient(q, p, args)
-        if not (self._identity_metric() and self.derivative == "autodiff"):
+        if not (metric_is(self.metric, "identity") and self.derivative == "autodiff"):
             grad_q = grad_q - transpose_times(y)
         return ReducedPoint(frame, p, jnp.concatenate([grad_q, y]), times, transpose_times)
 

@@ -646,21 +646,21 @@ class AbstractMethod(diffrax.AbstractSolver):
         )
 
         def attempt(carry):
-            trip, fresh, _, steps_before, _, jacobian, inverse = carry
+            fresh, _, steps_before, _, jacobian, inverse = carry
             jacobian, inverse = rarely(fresh, self._fresh_chord, (jacobian, inverse), (guess, data))
             solution = self._chord_root(root_finder, guess, data, jacobian, inverse)
             failed = (solution.result != optx.RESULTS.successful) | ~jnp.isfinite(solution.residual_size)
-            # A failure with a kept matrix is repeated with a fresh one.
+            # A failure with a kept matrix is repeated with a fresh one; after the last
+            # trip, `fresh` says whether it formed the matrix.
             repeat = ~fresh & failed
-            return trip + 1, jnp.asarray(True), repeat, steps_before + solution.steps, solution, jacobian, inverse
+            return fresh | repeat, repeat, steps_before + solution.steps, solution, jacobian, inverse
 
         # The iteration counts in the default integer type, as the root finder's.
         zero = jnp.asarray(0)
         unstarted = ChordSolution(guess, optx.RESULTS.successful, zero, jnp.zeros((), guess.dtype))
-        start = (zero, ~kept, jnp.asarray(True), zero, unstarted, memory.jacobian, memory.inverse)
-        trips, _, _, steps, last, jacobian, inverse = lax.while_loop(lambda carry: carry[2], attempt, start)
+        start = (~kept, jnp.asarray(True), zero, unstarted, memory.jacobian, memory.inverse)
+        fresh, _, steps, last, jacobian, inverse = lax.while_loop(lambda carry: carry[1], attempt, start)
         solution = ChordSolution(last.value, last.result, steps, last.residual_size)
-        fresh = ~kept | (trips > 1)
         iterations = last.steps.astype(memory.last_iterations.dtype)
         memory = ChordMemory(
             jacobian,

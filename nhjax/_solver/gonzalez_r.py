@@ -44,7 +44,7 @@ from jaxtyping import Array
 
 from .._discrete_gradient import Branch, gonzalez_correction
 from .._nonholonomic import NonholonomicSystem
-from .._reduced import check_derivative, Derivative, metric_of, ReducedSystem
+from .._reduced import check_derivative, Derivative, metric_is, metric_of, ReducedSystem
 from .chord import REMAINDER
 from .base import AbstractSymmetricSecondOrderMethod, increment_scale, resolution_of, step_key
 
@@ -320,9 +320,8 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         if self.reuse_chord_matrix is not None:
             return self.reuse_chord_matrix
         q, _ = y0
-        metric = metric_of(system, y0, args)
         constraints = jax.eval_shape(system.constraints, q, args).shape[0]
-        on_position = isinstance(metric, str) and metric == "position"
+        on_position = metric_is(metric_of(system, y0, args), "position")
         return on_position or 2 * q.shape[0] - constraints > KEPT_ABOVE_UNKNOWNS
 
     def chord_key(self, data):
@@ -371,8 +370,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         $q$ and the matrix may be kept (see the class docstring)."""
         if self.exact_chord_matrix is not None:
             return self.exact_chord_matrix
-        metric = data.reduced.metric
-        return self.reuse_chord_matrix is not False and isinstance(metric, str) and metric == "position"
+        return self.reuse_chord_matrix is not False and metric_is(data.reduced.metric, "position")
 
     def resolution(self, data):
         return resolution_of(data.zeta, data.scale), data.scale
