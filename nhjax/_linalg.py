@@ -5,8 +5,8 @@ The matrices inside a step are tiny (the metric, the Gram matrix of a frame: siz
 arithmetic, cannot be constant-folded when its input is constant (a constant metric),
 and under `vmap` becomes a loop of calls. Elimination unrolled over the (static) size
 is a few fused vector operations per column, vectorises across a batch, and is
-differentiable like any other `jax.numpy` code. Above `UNROLL_LIMIT` the LAPACK routines
-are used.
+differentiable like any other `jax.numpy` code. Above `UNROLL_LIMIT` (for symmetric
+positive definite solves `SPD_UNROLL_LIMIT`) the LAPACK routines are used.
 """
 
 import functools
@@ -21,13 +21,21 @@ from jaxtyping import Array, Bool, Float
 
 
 UNROLL_LIMIT = 16
+# Symmetric positive definite solves are unrolled to a smaller size: they sit inside
+# a Hamiltonian with a metric that depends on q, so a step's program holds many of
+# them (each derivative of H adds one), and from n = 8 on their unrolled eliminations
+# cost more to run, and far more to compile, than LAPACK's Cholesky solve: GONZALEZ-R
+# on a tractor with 13 trailers (n = 16) took half the time per step and 0.55x the
+# compile time with it (`benchmarks/scaling.py --family trailers`).
+SPD_UNROLL_LIMIT = 7
 PRODUCT_LIMIT = 32
 
 
 def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
-    r"""$a^{-1}b$ for symmetric positive definite `a`, by Gauss--Jordan elimination
-    without pivoting (stable for SPD matrices: the pivots are ratios of leading
-    principal minors, all positive).
+    r"""$a^{-1}b$ for symmetric positive definite `a`: up to `SPD_UNROLL_LIMIT` by
+    Gauss--Jordan elimination without pivoting (stable for SPD matrices: the pivots are
+    ratios of leading principal minors, all positive), above it by LAPACK's Cholesky
+    solve.
 
     Differentiated as a linear solve (`jax.lax.custom_linear_solve`):
     $d(a^{-1}b) = a^{-1}(db - da\,a^{-1}b)$, one more solve with the same matrix,
@@ -44,7 +52,7 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
 @jax.jit
 def _eliminate_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
     n = a.shape[0]
-    if n > UNROLL_LIMIT:
+    if n > SPD_UNROLL_LIMIT:
         return jsl.cho_solve(jsl.cho_factor(a), b)
     vector = b.ndim == 1
     augmented = jnp.concatenate([a, b[:, None] if vector else b], axis=1)

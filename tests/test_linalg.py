@@ -15,6 +15,7 @@ from nhjax._linalg import (
     safe_norm,
     solve,
     solve_spd,
+    SPD_UNROLL_LIMIT,
     UNROLL_LIMIT,
 )
 
@@ -80,7 +81,7 @@ def test_solve_pivots_and_reports_singular_matrices():
     np.testing.assert_allclose(solve(large, ones), np.linalg.solve(large, ones), rtol=1e-12)
 
 
-@given(n=st.integers(1, 9), seed=st.integers(0, 2**31 - 1))
+@given(n=st.integers(1, SPD_UNROLL_LIMIT + 3), seed=st.integers(0, 2**31 - 1))
 def test_spd_solve_matches_lapack(n, seed):
     b = jax.random.normal(jax.random.key(seed), (n, n))
     a = b @ b.T + n * jnp.eye(n)
@@ -88,7 +89,7 @@ def test_spd_solve_matches_lapack(n, seed):
     np.testing.assert_allclose(jitted_solve_spd(a, rhs), jnp.linalg.solve(a, rhs), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("n", [UNROLL_LIMIT + 1])
+@pytest.mark.parametrize("n", [SPD_UNROLL_LIMIT + 1, UNROLL_LIMIT + 1])
 def test_large_sizes_fall_back_to_lapack(n):
     a = jnp.eye(n) * 2.0
     np.testing.assert_allclose(inverse(a), 0.5 * jnp.eye(n))
@@ -113,7 +114,7 @@ def _spd_family(n, seed):
     return a, lambda s: jnp.cos(s * jnp.arange(1.0, n + 1.0))
 
 
-@pytest.mark.parametrize("n, seed", [(1, 0), (4, 1), (7, 2)])
+@pytest.mark.parametrize("n, seed", [(1, 0), (4, 1), (SPD_UNROLL_LIMIT, 2), (SPD_UNROLL_LIMIT + 2, 3)])
 def test_spd_solve_derivatives_match_lapack_solve(n, seed):
     """First and second derivatives, forward and reverse, in the matrix and the
     right-hand side (a vector and a matrix of them), against those of

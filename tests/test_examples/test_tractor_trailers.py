@@ -149,3 +149,22 @@ def test_the_train_converges_to_its_reduced_equations_at_second_order():
 
     errors = _second_order_errors(example, system, (q0, p0), t1, (25, 50, 100), observed, expected, 1e-13)
     assert errors[-1] < 1e-5
+
+
+def test_a_train_longer_than_the_unrolled_solves_keeps_its_invariants():
+    """Seven trailers (n = 10, k = 8): its metric and the constraints' Gram matrix are
+    solved by LAPACK's Cholesky (`nhjax._linalg.SPD_UNROLL_LIMIT`), not by the unrolled
+    elimination. The velocity is the metric's solve, and GONZALEZ-R keeps the energy and
+    the constraints at roundoff."""
+    from nhjax._linalg import SPD_UNROLL_LIMIT
+
+    example = nh.examples.tractor_trailers(7)
+    system = example.canonical
+    q0, p0 = example.initial_state()
+    assert min(q0.shape[0], q0.shape[0] - 2) > SPD_UNROLL_LIMIT
+    np.testing.assert_allclose(
+        system.velocity(q0, p0, example.args), np.linalg.solve(example.metric(q0, example.args), p0), rtol=1e-13, atol=1e-15
+    )
+    solution = nh.integrate(system, nh.GonzalezR(), (q0, p0), 0.05, 20, args=example.args)
+    assert relative_energy_error(solution) < 1e-13
+    assert float(jnp.max(jnp.abs(solution.constraint))) < 1e-13
