@@ -16,9 +16,21 @@ largest difference of the final states and of the energy errors. GONZALEZ-R's ch
 matrix is the one with the frame held either way (`exact_chord_matrix=False`), so that
 the figures measure keeping it alone.
 
+Which matrix, and whether to keep it (`matrix_choices`): on the systems whose metric
+depends on q (Euler's disk in both forms, 2 000 steps; the 5 trailers, 625; the
+sleigh, 2 000), GONZALEZ-R with the frame held or the exact matrix
+(`exact_chord_matrix`), each formed at every step or kept, in turns: µs/step, the
+ratio to the held matrix formed at every step, iterations per step, and compile
+seconds (`_timing.CompileTimes`) and lines of HLO, since the exact matrix and the kept
+one's conditional make a larger program. The default there is the exact matrix, kept.
+
 Results: benchmarks/results/chord_reuse.json.
-Run: python benchmarks/chord_reuse.py [--repeats 7]
+Run: python benchmarks/chord_reuse.py [--repeats 7] [--choices-only]
+(`--choices-only`: the matrix choices alone, the other cases keeping their last results)
 """
+
+import json
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +40,7 @@ jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
 import scaling  # noqa: E402
-from _timing import options, run_and_time_interleaved, write  # noqa: E402
+from _timing import CompileTimes, options, run_and_time_interleaved, write  # noqa: E402
 
 
 _BATCH = 32
@@ -116,19 +128,73 @@ def _measure(system, y0, args, method_of, h, steps, repeats):
     )
 
 
-def main():
-    arguments = options(__doc__, "chord_reuse", repeats=7)
-    results = {}
-    for name, (system, y0, args, method_of, h, steps) in _cases().items():
-        results[name] = _measure(system, y0, args, method_of, h, steps, arguments.repeats)
-        row = results[name]
+# (frame held or exact matrix, kept or formed at every step) for `matrix_choices`.
+_CHOICES = {
+    "held, fresh": dict(exact_chord_matrix=False, reuse_chord_matrix=False),
+    "exact, fresh": dict(exact_chord_matrix=True, reuse_chord_matrix=False),
+    "held, kept": dict(exact_chord_matrix=False, reuse_chord_matrix=True),
+    "exact, kept": dict(exact_chord_matrix=True, reuse_chord_matrix=True),
+}
+
+
+def _matrix_choices(repeats):
+    disk, sleigh = nh.examples.rolling_disk_3d(), nh.examples.chaplygin_sleigh()
+    trailers = nh.examples.tractor_trailers(5)
+    problems = {
+        "Euler's disk (mass-matrix H)": (disk.canonical, disk.state(**scaling.DISK_START), disk.args, 0.01, 2000),
+        "Euler's disk (Lagrangian)": (
+            disk.canonical_from_lagrangian, disk.state(**scaling.DISK_START), disk.args, 0.01, 2000
+        ),
+        "tractor pulling 5 trailers": (trailers.canonical, trailers.initial_state(), trailers.args, scaling.H, 625),
+        "sleigh": (sleigh.canonical, sleigh.start("canonical"), sleigh.args, 0.1, 2000),
+    }
+    table = {}
+    for name, (system, y0, args, h, steps) in problems.items():
+        runs, programs = {}, {}
+        for label, choice in _CHOICES.items():
+            method = nh.GonzalezR(**choice)
+            runs[label] = jax.jit(
+                lambda y, method=method: nh.integrate(system, method, y, h, steps, args=args, save_every=steps)
+            )
+            programs[label] = CompileTimes(runs[label], y0)
+        solutions, seconds = run_and_time_interleaved(runs, y0, repeats=repeats)
+        table[name] = {
+            label: dict(
+                us_per_step=seconds[label] / steps * 1e6,
+                over_held_fresh=seconds[label] / seconds["held, fresh"],
+                iterations_per_step=float(solutions[label].stats["root_find_steps"]) / steps,
+                compile_s=programs[label].compile_s,
+                hlo_lines=programs[label].hlo_lines,
+            )
+            for label in _CHOICES
+        }
         print(
-            f"{name:42s} fresh {row['fresh_us_per_step']:8.1f} µs/step  kept {row['kept_us_per_step']:8.1f}"
-            f"  ratio {row['kept_over_fresh']:.2f}  iterations {row['fresh_iterations_per_step']:.2f} ->"
-            f" {row['kept_iterations_per_step']:.2f}  matrices/step {row['kept_matrices_per_step']:.2f}",
+            f"{name:30s} "
+            + "; ".join(
+                f"{label} {row['us_per_step']:.1f} µs ({row['over_held_fresh']:.2f}, {row['compile_s']:.1f} s)"
+                for label, row in table[name].items()
+            ),
             flush=True,
         )
-    write(dict(cases=results, repeats=arguments.repeats), arguments.out)
+    return dict(table, h_and_steps={name: problem[3:] for name, problem in problems.items()})
+
+
+def main():
+    arguments = options(__doc__, "chord_reuse", repeats=7, choices_only=False)
+    path = pathlib.Path(arguments.out)
+    results = json.loads(path.read_text()) if arguments.choices_only and path.exists() else {}
+    if not arguments.choices_only:
+        results = dict(cases={}, repeats=arguments.repeats)
+        for name, (system, y0, args, method_of, h, steps) in _cases().items():
+            row = results["cases"][name] = _measure(system, y0, args, method_of, h, steps, arguments.repeats)
+            print(
+                f"{name:42s} fresh {row['fresh_us_per_step']:8.1f} µs/step  kept {row['kept_us_per_step']:8.1f}"
+                f"  ratio {row['kept_over_fresh']:.2f}  iterations {row['fresh_iterations_per_step']:.2f} ->"
+                f" {row['kept_iterations_per_step']:.2f}  matrices/step {row['kept_matrices_per_step']:.2f}",
+                flush=True,
+            )
+    results["matrix_choices"] = _matrix_choices(arguments.repeats)
+    write(results, arguments.out)
 
 
 if __name__ == "__main__":
