@@ -15,7 +15,8 @@ different points of one step belong to the same basis vector fields. `jax.jacfwd
 through `householder_frame` gives $\partial X/\partial q$: this replaces the paper's
 Algorithm 1 (its second half is the forward-mode derivative of its first). For a few
 constraints every operation is a plain `jax.numpy` operation, differentiated step by
-step; above `UNROLLED_REFLECTIONS` the reflections are differentiated in closed form
+step; above `UNROLLED_REFLECTIONS` the factorisation is LAPACK's where the signs are
+the stable ones, and the reflections are differentiated in closed form
 (`_reflector_tangents`). Where only products $X^Tv$ are needed, `HouseholderFrame`
 forms them from the reflectors without forming $X$ ($O(nk)$ per product instead of
 $O(nmk)$ for $X$).
@@ -31,11 +32,13 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._linalg import safe_norm
+from ._rare_branch import rarely
 
 
 # Up to this many reflections the loops over them are unrolled: the fewest operations
-# for the few constraints of most systems. Beyond it the factorisation runs as a
-# `lax.scan`, whose program does not grow with k, differentiated in closed form
+# for the few constraints of most systems. Beyond it the factorisation is LAPACK's
+# (or a `lax.scan` where a given sign is not the stable one: `_many_reflectors`), whose
+# program does not grow with k, differentiated in closed form
 # (`_reflector_tangents`), and products with the frame take the compact WY form
 # (`_wy_factor`): unrolled, every factorisation, product and derivative of them in a
 # step is k copies, and at k = 16 (n = 64 in `benchmarks/scaling.py`) they set the
@@ -80,7 +83,7 @@ def _reflectors(a_t, signs):
     $|\tilde w_j|/\sqrt2$, R's diagonal magnitudes |x_j|, and the signs used."""
     k = a_t.shape[1]
     if k > UNROLLED_REFLECTIONS:
-        return _scanned_reflectors(a_t, signs)
+        return _many_reflectors(a_t, signs)
     r = a_t
     outputs = []
     for j in range(k):
@@ -91,24 +94,65 @@ def _reflectors(a_t, signs):
 
 
 @jax.custom_jvp
-def _scanned_reflectors(a_t, signs):
-    """`_reflectors` as a scan over the reflections, differentiated in closed form
-    (`_reflector_tangents`)."""
-    k = a_t.shape[1]
+def _many_reflectors(a_t, signs):
+    """`_reflectors` beyond `UNROLLED_REFLECTIONS`, differentiated in closed form
+    (`_reflector_tangents`): by LAPACK's QR (`_lapack_reflectors`), whose reflections
+    are those with the stable signs; where the given `signs` are not all the stable
+    ones (a step whose frame keeps its start's signs, `nhjax._reduced.ReducedSystem`,
+    where a pivot's leading entry changed sign), by a scan over the reflections with
+    the given signs (`rarely`: under `vmap` only where a trajectory needs it)."""
+    stable = _lapack_reflectors(a_t)
+    if signs is None:
+        return stable
+    return rarely(jnp.any(stable[3] != signs), _scanned_reflectors, stable, (a_t, signs))
+
+
+def _scanned_reflectors(operands):
+    """The reflections one after another with the given signs, as a scan."""
+    a_t, signs = operands
 
     def step(r, j_and_sign):
         j, given_sign = j_and_sign
-        return _reflection(r, j, None if signs is None else given_sign)
+        return _reflection(r, j, given_sign)
 
-    given = jnp.zeros((k,), a_t.dtype) if signs is None else signs
-    return lax.scan(step, a_t, (jnp.arange(k), given))[1]
+    return lax.scan(step, a_t, (jnp.arange(a_t.shape[1]), signs))[1]
 
 
-@_scanned_reflectors.defjvp
-def _scanned_reflectors_jvp(primals, tangents):
+def _lapack_reflectors(a_t):
+    r"""`_reflectors` with the stable signs from LAPACK's Householder QR (`geqrf`): one
+    library call, where a scan over $k$ reflections runs $k$ sequential steps of a
+    dozen operations each, which made most of a GONZALEZ-R residual for a tractor with
+    13 trailers ($k = 14$).
+
+    LAPACK's reflector of $x$ (`larfg`) is $H = I - \tau vv^T$, $v_1 = 1$, mapping $x$ to
+    $\beta e_1$, $\beta = -\mathrm{sign}(x_1)|x|$, with $\tau = (\beta - x_1)/\beta$: the
+    unit $w = s\,v/|v|$ with $s = \mathrm{sign}(x_1) = -\mathrm{sign}(\beta)$ is
+    `_reflection`'s with the stable sign, and $x_1 = \beta(1 - \tau)$. Where $x$ has
+    nothing below its first entry, LAPACK takes $\tau = 0$ ($H = I$, $\beta = x_1$) and
+    `_reflection` the reflection along $e_1$: the same frame (a sign flip of a row
+    of $R$ the frame never reads), and $w = s\,e_1$ with $s = \mathrm{sign}(\beta)$."""
+    n, k = a_t.shape
+    # NumPy's "raw" mode: LAPACK's packed factorisation, transposed.
+    packed_t, taus = jnp.linalg.qr(a_t, mode="raw")
+    packed = packed_t.T
+    rows, columns = jnp.arange(n)[:, None], jnp.arange(k)[None, :]
+    v = jnp.where(rows > columns, packed, 0.0) + (rows == columns).astype(a_t.dtype)
+    beta = jnp.diagonal(packed)
+    one = jnp.ones((), a_t.dtype)
+    sign_of_beta = jnp.where(beta >= 0, one, -one)
+    signs = jnp.where(taus == 0, sign_of_beta, -sign_of_beta)
+    vectors = (signs[None, :] * v / jnp.sqrt(jnp.sum(v * v, axis=0))[None, :]).T
+    norms = jnp.abs(beta)
+    leading = beta * (1 - taus)
+    pivots = jnp.sqrt(norms * (norms + jnp.abs(leading)))
+    return vectors, pivots, norms, signs
+
+
+@_many_reflectors.defjvp
+def _many_reflectors_jvp(primals, tangents):
     a_t, signs = primals
     a_t_dot = tangents[0]
-    outputs = _scanned_reflectors(a_t, signs)
+    outputs = _many_reflectors(a_t, signs)
     vectors, _, norms, used = outputs
     vectors_dot, pivots_dot, norms_dot = _reflector_tangents(a_t, vectors, norms, a_t_dot)
     return outputs, (vectors_dot, pivots_dot, norms_dot, jnp.zeros_like(used))

@@ -127,16 +127,21 @@ def _with_unrolled_reflections(function):
         jax.clear_caches()
 
 
-def test_scanned_and_unrolled_reflections_agree():
-    """Above `UNROLLED_REFLECTIONS` constraints the factorisation runs as a scan,
-    differentiated in closed form, and the products with the frame in the compact WY
-    form: the same values, products and derivatives (first and second, of the pivots
-    too) as the unrolled reflections differentiated step by step, to roundoff."""
+@pytest.mark.parametrize("flipped", [None, 2], ids=["stable signs", "one sign flipped"])
+def test_scanned_and_unrolled_reflections_agree(flipped):
+    """Above `UNROLLED_REFLECTIONS` constraints the factorisation is LAPACK's QR, or
+    where a given sign is not the stable one (`flipped`: the third) a scan over the
+    reflections, differentiated in closed form, and the products with the frame in
+    the compact WY form: the same values, products and derivatives (first and second,
+    of the pivots too) as the unrolled reflections differentiated step by step, to
+    roundoff."""
     assert nhjax._householder.UNROLLED_REFLECTIONS < 6
     q = jnp.linspace(-0.8, 1.1, 10)
     v = jnp.linspace(0.5, -1.5, 10)
     w = jnp.linspace(-0.3, 0.9, 4)
     signs = householder_signs(_wide_constraints(q).T)
+    if flipped is not None:
+        signs = signs.at[flipped].multiply(-1)
 
     def product(x):
         return householder_frame_operator(_wide_constraints(x).T, signs).transpose_times(v)
