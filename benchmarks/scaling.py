@@ -19,10 +19,12 @@ Two families (`--family`), n coordinates each:
 Steps of h = 0.05; the number of steps falls with n (`_steps`) so that the slowest runs
 stay within minutes.
 
-For each n and method: median µs/step (`--repeats` timed runs after a warm-up),
+For each n and method: median µs/step (`--repeats` timed runs after a warm-up, the
+methods and the yardstick of one size timed in turns, `run_and_time_interleaved`, so
+that the machine's drift falls on all alike and their ratios hold still),
 root-finder iterations per step, seconds to trace, lower and compile (with XLA's default
 emitters, and with its loop emitter, `LOOP_EMITTER`), and the process's peak resident
-memory after the case (`ru_maxrss`, a high-water mark: it only grows). The yardstick
+memory after the case's compilation (`ru_maxrss`, a high-water mark: it only grows). The yardstick
 solves y' = y + h f((y + y')/2), f = (dH/dp, -dH/dq) of the same H with the constraint
 left out, by three Newton iterations a step with a dense Jacobian (`jax.jacfwd`,
 `jnp.linalg.solve`). The fitted
@@ -65,7 +67,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
-from _timing import CompileTimes, run_and_time, timed, write  # noqa: E402
+from _timing import CompileTimes, run_and_time, run_and_time_interleaved, timed, write  # noqa: E402
 from nhjax._methods import METHODS  # noqa: E402
 
 
@@ -155,11 +157,15 @@ def _peak_mib():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _case(run, argument, repeats, steps):
-    """µs/step, the seconds before a first run (`CompileTimes`), and peak memory."""
-    compiled = CompileTimes(run, argument).times()
-    output, seconds = run_and_time(run, argument, repeats=repeats)
-    return output, dict(us_per_step=seconds / steps * 1e6, **compiled, peak_rss_mib=_peak_mib())
+def _in_turns(runs, argument, repeats, steps):
+    """Each run's compile figures (`CompileTimes`) and the peak memory after its
+    compilation, then µs/step of all the runs timed in turns: ({name: output},
+    {name: figures})."""
+    figures = {name: dict(**CompileTimes(run, argument).times(), peak_rss_mib=_peak_mib()) for name, run in runs.items()}
+    outputs, seconds = run_and_time_interleaved(runs, argument, repeats=repeats)
+    for name in runs:
+        figures[name]["us_per_step"] = seconds[name] / steps * 1e6
+    return outputs, figures
 
 
 def _method_columns(row, methods) -> str:
@@ -171,14 +177,22 @@ def _method_columns(row, methods) -> str:
     )
 
 
-def _method_case(system, solver, y0, h, steps, repeats, args=None):
-    """One method's run of `steps` steps: µs/step, compile s, peak memory, root-finder
-    iterations per step, and whether it succeeded."""
-    run = jax.jit(lambda y: nh.integrate(system, solver, y, h, steps, args=args, save_every=steps, throw=False))
-    solution, figures = _case(run, y0, repeats, steps)
-    total = solution.stats.get("root_find_steps")
-    figures["iterations_per_step"] = None if total is None else float(total) / steps
-    figures["successful"] = bool(solution.result == nh.RESULTS.successful)
+def _methods_in_turns(system, methods, y0, h, steps, repeats, args=None, extra_runs=None):
+    """Every method's run of `steps` steps (and `extra_runs`, functions of `y0`), timed
+    in turns (`_in_turns`): each one's µs/step, compile s, peak memory, and for the
+    methods root-finder iterations per step and whether it succeeded."""
+    runs = dict(extra_runs or {})
+    for name, method in methods.items():
+        runs[name] = jax.jit(
+            lambda y, solver=method.solver: nh.integrate(
+                system, solver, y, h, steps, args=args, save_every=steps, throw=False
+            )
+        )
+    solutions, figures = _in_turns(runs, y0, repeats, steps)
+    for name in methods:
+        total = solutions[name].stats.get("root_find_steps")
+        figures[name]["iterations_per_step"] = None if total is None else float(total) / steps
+        figures[name]["successful"] = bool(solutions[name].result == nh.RESULTS.successful)
     return figures
 
 
@@ -209,13 +223,12 @@ def main():
     for n in sizes:
         steps = _steps(n)
         system, args, y0, k = family(n)
-        row = dict(k=k, steps=steps)
-        _, row["yardstick"] = _case(
-            jax.jit(lambda y: _yardstick(system.hamiltonian, args, y, steps)), jnp.concatenate(y0), options.repeats,
-            steps,
+        yardstick = jax.jit(lambda y: _yardstick(system.hamiltonian, args, jnp.concatenate(y), steps))
+        row = dict(
+            k=k,
+            steps=steps,
+            **_methods_in_turns(system, methods, y0, H, steps, options.repeats, args, dict(yardstick=yardstick)),
         )
-        for name, method in methods.items():
-            row[name] = _method_case(system, method.solver, y0, H, steps, options.repeats, args)
         table[n] = row
         print(
             f"n = {n:3d}, k = {k:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
@@ -266,10 +279,7 @@ def _disk(methods, repeats):
     forms = dict(mass_matrix_hamiltonian=disk.canonical, lagrangian=disk.canonical_from_lagrangian)
     results = {}
     for form, system in forms.items():
-        row = {
-            name: _method_case(system, method.solver, y0, 0.01, DISK_STEPS, repeats, disk.args)
-            for name, method in methods.items()
-        }
+        row = _methods_in_turns(system, methods, y0, 0.01, DISK_STEPS, repeats, disk.args)
         results[form] = row
         print(f"3D rolling disk, {form}: " + _method_columns(row, methods), flush=True)
     return results
