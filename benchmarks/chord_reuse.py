@@ -138,6 +138,8 @@ _CHOICES = {
 
 
 def _matrix_choices(repeats):
+    """`_CHOICES` on the systems whose metric depends on q, timed in turns (see the
+    module docstring): {problem: {choice: figures}}, and each problem's h and steps."""
     disk, sleigh = nh.examples.rolling_disk_3d(), nh.examples.chaplygin_sleigh()
     trailers = nh.examples.tractor_trailers(5)
     problems = {
@@ -182,8 +184,9 @@ def _matrix_choices(repeats):
 def main():
     arguments = options(__doc__, "chord_reuse", repeats=7, choices_only=False)
     path = pathlib.Path(arguments.out)
-    results = json.loads(path.read_text()) if arguments.choices_only and path.exists() else {}
-    if not arguments.choices_only:
+    if arguments.choices_only:
+        results = json.loads(path.read_text()) if path.exists() else {}
+    else:
         results = dict(cases={}, repeats=arguments.repeats)
         for name, (system, y0, args, method_of, h, steps) in _cases().items():
             row = results["cases"][name] = _measure(system, y0, args, method_of, h, steps, arguments.repeats)

@@ -24,9 +24,8 @@ UNROLL_LIMIT = 16
 # Symmetric positive definite solves are unrolled to a smaller size: they sit inside
 # a Hamiltonian with a metric that depends on q, so a step's program holds many of
 # them (each derivative of H adds one), and from n = 8 on their unrolled eliminations
-# cost more to run, and far more to compile, than LAPACK's Cholesky solve: GONZALEZ-R
-# on a tractor with 13 trailers (n = 16) took half the time per step and 0.55x the
-# compile time with it (`benchmarks/scaling.py --family trailers`).
+# cost more to run, and far more to compile, than LAPACK's Cholesky solve
+# (`benchmarks/scaling.py --family trailers`).
 SPD_UNROLL_LIMIT = 7
 PRODUCT_LIMIT = 32
 

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import nhjax as nh
+from nhjax._linalg import SPD_UNROLL_LIMIT
 from tests.helpers import relative_energy_error
 
 
@@ -156,8 +157,6 @@ def test_a_train_longer_than_the_unrolled_solves_keeps_its_invariants():
     solved by LAPACK's Cholesky (`nhjax._linalg.SPD_UNROLL_LIMIT`), not by the unrolled
     elimination. The velocity is the metric's solve, and GONZALEZ-R keeps the energy and
     the constraints at roundoff."""
-    from nhjax._linalg import SPD_UNROLL_LIMIT
-
     example = nh.examples.tractor_trailers(7)
     system = example.canonical
     q0, p0 = example.initial_state()
