@@ -95,6 +95,24 @@ def test_a_remainder_bound_iterates_until_the_estimated_error_is_below_it():
     assert exact.result == optx.RESULTS.successful and int(exact.steps) == 2
 
 
+def test_a_remainder_bound_reads_the_contraction_before_a_correction_at_the_rounding_floor():
+    """Contraction c = 0.01 from an error of 2e10 tolerances, with a rounding error of
+    0.003 tolerances in the residual (`_floor_residual`): the corrections are about
+    2e8, 2e6, ..., 2, then 0.02 (the sixth, c = 0.01 of it still left, so the error
+    left 2e-4 tolerances is above the bound), then the eighth, at the floor, about 0.005.
+    Its ratio to the seventh measures the rounding (0.25), but the two before it show
+    the contraction, 0.01, and an error left of 5e-5 tolerances: the iteration stops
+    there, where the ratio of the last two alone would have needed a ninth correction
+    to see the stall. The error left is within the floor."""
+    contraction, floor = 0.01, 0.003 * ATOL
+    solution = PresetChord(atol=ATOL).solve(
+        _floor_residual(floor), jnp.zeros(3), None, (1 - contraction) * jnp.eye(3), 50, remainder=1e-4
+    )
+    assert solution.result == optx.RESULTS.successful
+    assert int(solution.steps) == 8
+    np.testing.assert_allclose(solution.value, ROOT, rtol=0, atol=floor * (1 + 1e-6))
+
+
 def test_a_relative_tolerance_may_be_traced_and_loosens_the_correction_test():
     """rtol given as a traced value (inside `jax.jit`) enters the tolerance of the
     corrections, atol + rtol |u|, as the same rtol given as a number does; the residual
