@@ -8,7 +8,7 @@ state of key 0), to t = 10. Runs:
   in canonical coordinates; on the quartic also DiscreteGradient(gonzalez) and its
   compositions on the reduced form (errors measured on (q, p) after mapping back);
 - energy-exact and symmetric in one solve a step: `nhjax.EnergyPreservingCollocation` of
-  order 4, 6 and 8 in canonical coordinates (through the reduced form), with its chord
+  every order from 4 to 12 in canonical coordinates (through the reduced form), with its chord
   matrix formed at every step and kept from step to step (`reuse_chord_matrix=True`);
 - energy-exact too, not symmetric: Dopri8 with adaptive steps, each step projected onto
   the energy level and the constraint (`nhjax.Projection`), over a sweep of tolerances;
@@ -63,7 +63,11 @@ STEP_COUNTS = {
     4: (20, 25, 32, 40, 50, 64, 80, 100, 125, 160, 200, 250, 320, 400, 500, 640),
     6: (16, 20, 25, 32, 40, 50, 64, 80, 100, 125, 160, 200),
     8: (10, 16, 20, 25, 32, 40, 50, 64, 80, 100, 125),
+    10: (10, 12, 14, 16, 20, 25, 32, 40, 50, 64),
+    12: (8, 10, 12, 14, 16, 20, 25, 32, 40),
 }
+# The collocation's orders above 2 (`nhjax.EnergyPreservingCollocation.orders`).
+COLLOCATION_ORDERS = tuple(order for order in nh.EnergyPreservingCollocation.orders if order > 2)
 TSIT5_STEPS = (50, 100, 200, 400, 800, 1600, 3200)
 PROJECTED = "Dopri8 + projection (adaptive)"
 COLLOCATION = "EP-collocation"
@@ -176,7 +180,7 @@ def work_precision(repeats: int, quick: bool = False) -> dict:
                 print(f"{problem_name:10s} {name:34s} " + "  ".join(
                     f"N={row['steps']}: {row['error']:.1e} in {row['wall_time_s'] * 1e3:.2f} ms"
                     for row in runs[name] if not row["failed"]), flush=True)
-        for order, kept in itertools.product((4, 6, 8), (False, True)):
+        for order, kept in itertools.product(COLLOCATION_ORDERS, (False, True)):
             name = f"{COLLOCATION}{KEPT if kept else ''}, order {order}"
             runs[name] = _sweep(system, nh.EnergyPreservingCollocation(order, reuse_chord_matrix=kept), y0,
                                 thin(STEP_COUNTS[order]), reference, _identity, repeats, invariants)
