@@ -14,6 +14,7 @@ import time
 import warnings
 
 from ._methods import integrates_adapted, METHODS, takes_either_form
+from ._solver import Composition
 from ._reproduce import FIGURES
 from .examples import EXAMPLES
 
@@ -152,16 +153,13 @@ def _problem(arguments):
     return example.system(form), state, example.args, f"{description}, {form} form, from {start}"
 
 
-ORDERS = (2, 4, 6, 8)
 # Step counts are int64 in the loop (diffrax's), with room for the count of saves.
 _MOST_STEPS = 2**62
 
 
 def _composed(method, order: int):
     """`method`, or its symmetric composition of `order` (`nhjax.Composition`)."""
-    import nhjax as nh
-
-    return method if order == 2 else nh.Composition(method, order)
+    return method if order == 2 else Composition(method, order)
 
 
 def _method_label(arguments) -> str:
@@ -375,7 +373,7 @@ def main(argv=None) -> int:
     )
     simulate.add_argument("--method", required=True, choices=METHODS, metavar="METHOD", help=f"one of {', '.join(METHODS)} (see below)")
     simulate.add_argument(
-        "--order", type=int, choices=ORDERS, default=2, metavar="P",
+        "--order", type=int, choices=Composition.orders, default=2, metavar="P",
         help="compose the method symmetrically to order P, one of 2 (the method itself), 4, 6, 8 "
         "(Suzuki's 5, Kahan & Li's 9 and 17 substeps per step); not with tsit5",
     )

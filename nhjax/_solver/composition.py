@@ -226,6 +226,8 @@ class Composition(diffrax.AbstractSolver):
     """
 
     interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
+    # The orders `order` takes (each with its recommended scheme).
+    orders: ClassVar[tuple[int, ...]] = tuple(RECOMMENDED_SCHEMES)
 
     # Not a `diffrax.AbstractWrappedSolver` (as `nhjax.Projection` is): a wrapper passes
     # `isinstance` checks as what it wraps, and a composition would pass as an
