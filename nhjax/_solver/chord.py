@@ -254,9 +254,9 @@ class PresetChord(optx.AbstractRootFinder):
         taken: a last correction at the rounding floor measures the rounding, and
         without this the iteration often took one more correction to see the stall.
         An error below the tolerance but of one sign from step to step (the chord
-        matrix's error is smooth along a trajectory) would otherwise add up: with a matrix contracting by 0.002 per iteration, the
-        energy of the 3D rolling disk drifted by 2.6e-13 relative in 20 000 steps,
-        against 1.6e-14 with the bound.
+        matrix's error is smooth along a trajectory) would otherwise add up: with a
+        matrix contracting by 0.002 per iteration, the energy of the 3D rolling disk
+        drifted by 2.6e-13 relative in 20 000 steps, against 1.6e-14 with the bound.
 
         The loop carries only what changes: the inverse and the floors, which do not,
         stay outside it. Under `vmap` a while loop's body ends with a select between the
