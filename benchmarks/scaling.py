@@ -24,12 +24,11 @@ methods and the yardstick of one size timed in turns, `run_and_time_interleaved`
 that the machine's drift falls on all alike and their ratios hold still),
 root-finder iterations per step, seconds to trace, lower and compile (with XLA's default
 emitters, and with its loop emitter, `LOOP_EMITTER`), and the process's peak resident
-memory after the case's compilation (`ru_maxrss`, a high-water mark: it only grows). The yardstick
-solves y' = y + h f((y + y')/2), f = (dH/dp, -dH/dq) of the same H with the constraint
-left out, by three Newton iterations a step with a dense Jacobian (`jax.jacfwd`,
-`jnp.linalg.solve`). The fitted
-growth exponent of each method is the slope of log(µs/step) against log(n) over the
-sizes from 16 on.
+memory after the case's compilation (`ru_maxrss`, a high-water mark: it only grows).
+The yardstick solves y' = y + h f((y + y')/2), f = (dH/dp, -dH/dq) of the same H with
+the constraint left out, by three Newton iterations a step with a dense Jacobian
+(`jax.jacfwd`, `jnp.linalg.solve`). The fitted growth exponent of each method is the
+slope of log(µs/step) against log(n) over the sizes from 16 on.
 
 Beside the family, Euler's disk (`nhjax.examples.rolling_disk_3d`, n = 5, k = 2, a
 metric that depends on q: a system as a mechanician derives it) in both its forms, the

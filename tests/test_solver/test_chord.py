@@ -98,7 +98,7 @@ def test_a_remainder_bound_iterates_until_the_estimated_error_is_below_it():
 def test_a_remainder_bound_reads_the_contraction_before_a_correction_at_the_rounding_floor():
     """Contraction c = 0.01 from an error of 2e10 tolerances, with a rounding error of
     0.003 tolerances in the residual (`_floor_residual`): the corrections are about
-    2e8, 2e6, ..., 2, then 0.02 (the sixth, c = 0.01 of it still left, so the error
+    2e10, 2e8, ..., 2, then 0.02 (the seventh, c = 0.01 of it still left, so the error
     left 2e-4 tolerances is above the bound), then the eighth, at the floor, about 0.005.
     Its ratio to the seventh measures the rounding (0.25), but the two before it show
     the contraction, 0.01, and an error left of 5e-5 tolerances: the iteration stops
