@@ -28,6 +28,8 @@ UNROLL_LIMIT = 16
 # (`benchmarks/scaling.py --family trailers`).
 SPD_UNROLL_LIMIT = 7
 PRODUCT_LIMIT = 32
+# Matrix products of tiny matrices are broadcasts up to this size (`matrix_product`).
+MATRIX_PRODUCT_LIMIT = 8
 
 
 def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
@@ -125,6 +127,17 @@ def product(a: Float[Array, "*m k"], b: Float[Array, "k *n"]) -> Array:
     if b.ndim == 1:
         return jnp.sum(a * b, axis=-1)
     return jnp.sum(a[:, None] * b, axis=0)
+
+
+def matrix_product(a: Float[Array, "*b m k"], b: Float[Array, "*b k n"]) -> Float[Array, "*b m n"]:
+    """`a @ b` (batched), for tiny matrices (every axis at most `MATRIX_PRODUCT_LIMIT`)
+    as a broadcast multiply and a sum, which XLA:CPU fuses with what is around it. Above
+    that, `@`: the broadcast's $mkn$ products cost more than the dot's call (the
+    chord matrices of `nhjax.EnergyPreservingCollocation`: faster with $N = 5$ unknowns
+    a stage, slower with $N = 13$)."""
+    if max(a.shape[-2:] + b.shape[-2:]) > MATRIX_PRODUCT_LIMIT:
+        return jnp.matmul(a, b)
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
 def safe_norm(v: Float[Array, " n"]) -> Float[Array, ""]:

@@ -220,13 +220,14 @@ def step_key(h, dtype=None, signs: Float[Array, " k"] | None = None) -> Float[Ar
 
 
 class ChordMemory(eqx.Module):
-    """The chord matrix of the last step and its inverse, kept for the next step
+    """The chord matrix of the last step (in the form `AbstractMethod.chord_matrix`
+    returns it) and its inverse, kept for the next step
     (`AbstractMethod.reuses_chord_matrix`): `key`, what it was formed for
     (`AbstractMethod.chord_key`; NaN before the first step, so that it matches
     nothing); the iterations the step that formed it took, those of the last step, the
     steps it has served (`age`), and the chord matrices formed so far."""
 
-    jacobian: Float[Array, "u u"]
+    jacobian: PyTree[Array]
     inverse: Float[Array, "u u"]
     key: Float[Array, " c"]
     fresh_iterations: Int[Array, ""]
@@ -282,7 +283,12 @@ def rounding_floor(jacobian: Float[Array, "u u"], resolution: Float[Array, " u"]
     one component of the midpoint gradient into every component along the increment,
     which the chord matrix (built without that term) does not show. Times the margin
     `ROUNDING_FLOOR`."""
-    own = jnp.abs(lax.stop_gradient(jacobian)) @ resolution
+    return floor_of_rounding(jnp.abs(lax.stop_gradient(jacobian)) @ resolution, scale)
+
+
+def floor_of_rounding(own: Float[Array, " u"], scale: Float[Array, " u"]) -> Array:
+    r"""`rounding_floor` from $w = |\tilde J|\,r$ (for a method that forms $w$ by the
+    structure of its chord matrix)."""
     increments = scale > 0
     mixed = jnp.max(scale * own) / jnp.where(increments, scale, 1.0)
     return ROUNDING_FLOOR * (own + jnp.where(increments, mixed, 0.0))
@@ -388,14 +394,26 @@ class AbstractMethod(diffrax.AbstractSolver):
     def chord_jacobian(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, "u u"]:
         return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
-    def chord_matrix(
-        self, unknowns: Float[Array, " u"], data: Any
-    ) -> tuple[Float[Array, "u u"], Float[Array, "u u"]]:
+    def chord_matrix(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], Float[Array, "u u"]]:
         """The chord matrix at `unknowns` (`chord_jacobian`) and its inverse, by default
-        `nhjax._solver.chord.chord_inverse`; a method whose matrix has structure may
-        form and invert it by that structure."""
+        `nhjax._solver.chord.chord_inverse`. A method whose matrix has structure may
+        form and invert it by that structure, and return in its place what it forms it
+        from (its `chord_floor` reads that; a step fails as non-finite where any of it
+        is)."""
         jacobian = self.chord_jacobian(unknowns, data)
         return jacobian, chord_inverse(jacobian)
+
+    def unformed_chord_matrix(self, size: int, dtype) -> PyTree[Array]:
+        """NaN in the form of `chord_matrix`'s matrix for `size` unknowns: what a
+        `ChordMemory` holds before the first matrix is formed."""
+        return jnp.full((size, size), jnp.nan, dtype)
+
+    def chord_floor(self, matrix: PyTree[Array], data: Any) -> Float[Array, " u"] | None:
+        """The rounding floor of the residual (`rounding_floor`) from the chord matrix as
+        `chord_matrix` returns it, at the method's `resolution`; `None` where it has
+        none."""
+        resolution = self.resolution(data)
+        return None if resolution is None else rounding_floor(matrix, *resolution)
 
     def complete(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], PyTree]:
         raise NotImplementedError
@@ -464,8 +482,15 @@ class AbstractMethod(diffrax.AbstractSolver):
 
             unknowns, key = jax.eval_shape(unknowns_and_key)
             size, dtype = unknowns.shape[0], unknowns.dtype
-            empty = jnp.full((size, size), jnp.nan, dtype)
-            chord = ChordMemory(empty, empty, jnp.full(key.shape, jnp.nan, key.dtype), zero, zero, zero, zero)
+            chord = ChordMemory(
+                self.unformed_chord_matrix(size, dtype),
+                jnp.full((size, size), jnp.nan, dtype),
+                jnp.full(key.shape, jnp.nan, key.dtype),
+                zero,
+                zero,
+                zero,
+                zero,
+            )
         return MethodState(zero, zero, RESULTS.successful, carry, chord)
 
     def func(self, terms, t0, y0, args):
@@ -586,7 +611,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         chord = None
         if isinstance(root_finder, PresetChord):
             solution, jacobian, inverse, chord = self._chord_solve(root_finder, guess, fixed_data, solver_state.chord)
-            evaluations_finite = jnp.all(jnp.isfinite(guess)) & jnp.all(jnp.isfinite(jacobian))
+            evaluations_finite = jnp.all(jnp.isfinite(guess)) & all_finite(jacobian)
             singular = ~jnp.all(jnp.isfinite(inverse))
         else:
             found = optx.root_find(
@@ -613,10 +638,14 @@ class AbstractMethod(diffrax.AbstractSolver):
         return self.chord_matrix(*operands)
 
     def _chord_root(self, root_finder, guess, data, jacobian, inverse) -> ChordSolution:
-        resolution = self.resolution(data)
-        floor = None if resolution is None else rounding_floor(jacobian, *resolution)
         return root_finder.solve(
-            self.root_find_residual, guess, data, inverse, self.root_find_max_steps, floor, self.chord_remainder(data)
+            self.root_find_residual,
+            guess,
+            data,
+            inverse,
+            self.root_find_max_steps,
+            self.chord_floor(jacobian, data),
+            self.chord_remainder(data),
         )
 
     def _fresh_chord_root(self, root_finder, operands):

@@ -6,15 +6,17 @@ from typing import Any, ClassVar, NamedTuple
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
 from .._discrete_gradient import Branch, value_difference
+from .._linalg import matrix_product, PRODUCT_LIMIT
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
 from ._collocation_tableau import collocation_tableau, CollocationTableau
-from .base import AbstractMethod, increment_scale, resolution_of, step_key
+from .base import AbstractMethod, floor_of_rounding, increment_scale, resolution_of, step_key
 from .chord import chord_inverse, REMAINDER
 
 
@@ -146,7 +148,7 @@ class EnergyPreservingCollocation(AbstractMethod):
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
     - `reuse_chord_matrix`: start each step from the last step's chord matrix while
         it serves (`nhjax.AbstractMethod.reuses_chord_matrix`): its $sN \times sN$
-        matrix, from the field's derivative and $s/2$ complex $N \times N$ inverses,
+        matrix, from the field's derivative and $s/2$ real $N \times N$ inverses,
         can cost as much as several iterations.
 
     **Dissipation and force.** For $\dot x = (\Pi - R)\nabla H + g(t, x)$ (on the
@@ -353,35 +355,67 @@ class EnergyPreservingCollocation(AbstractMethod):
         ])
 
     def chord_matrix(self, u, data):
-        r"""`chord_jacobian` and its inverse, from one $F$. The inverse by the
-        eigenvalues $\lambda_k$ of $a$:
-        $\sum_k (v_k w_k^T) \otimes (I - h\lambda_kF)^{-1}$ ($v_k$, $w_k^T$ the columns
-        of $V$ and rows of $V^{-1}$), one complex $N \times N$ inverse per real
-        eigenvalue or conjugate pair (the conjugate's block is the conjugate), against
-        $(sN)^3$ work by elimination; the sum is one real matrix product
-        (`CollocationTableau.inverse_blocks`). It is the cheaper route on XLA:CPU even
-        where the whole matrix is small enough for the unrolled elimination
-        (`chord_inverse`): on the gearbox ($N = 5$), 4.3 against 5.7 µs at order 6 and
-        3.0 against 3.1 µs at order 4; at order 2 ($s = 1$) the two are one real
-        elimination, which is used. Cut from differentiation, as the chord matrix is."""
-        scaled = self._scaled_field_jacobian(u, data)
-        jacobian = self._chord_jacobian_of(scaled, data.h)
-        if self.stages == 1:
-            return jacobian, chord_inverse(jacobian)
-        eigenvalues, weights = self.tableau().inverse_blocks()
-        scaled = lax.stop_gradient(scaled)
-        complex_dtype = jnp.result_type(scaled.dtype, jnp.complex64)
+        r"""The chord matrix, in the form of $F$ (scaled, `_scaled_field_jacobian`), from
+        which `chord_jacobian` assembles it and `chord_floor` reads its rounding, and its
+        inverse by the eigenvalues $\mu_k$ of $a$:
+        $\sum_k (v_k w_k^T) \otimes (I - h\mu_kF)^{-1}$ ($v_k$, $w_k^T$ the columns
+        of $V$ and rows of $V^{-1}$), one $N \times N$ block per real eigenvalue or
+        conjugate pair (the conjugate's block is the conjugate) against $(sN)^3$ work by
+        elimination; the sum is one real matrix product
+        (`CollocationTableau.inverse_blocks`). A block is formed in real arithmetic,
+        $(I - h\mu F)^{-1} = (I - h\bar\mu F)P^{-1}$ with
+        $P = (I - h\mu F)(I - h\bar\mu F) = I - 2h\,\mathrm{Re}\,\mu\,F + h^2|\mu|^2F^2$,
+        one real inverse (`chord_inverse`) and a product:
+        its real part is $(I - h\,\mathrm{Re}\,\mu\,F)P^{-1}$, its imaginary part
+        $h\,\mathrm{Im}\,\mu\,FP^{-1}$. $P$'s condition is that of the block
+        squared, which a chord matrix can spare (it sets how fast the iteration
+        contracts, not the root). On XLA:CPU a real elimination is a fraction of a
+        complex one, and with the $sN \times sN$ matrix never assembled the steps of
+        orders 8 to 12 are a tenth to a fifth cheaper than with complex blocks and the
+        assembled matrix (`benchmarks/composition.py`). At order 2 ($s = 1$) the matrix
+        is inverted as it is. Cut from differentiation, as the chord matrix is."""
+        scaled = lax.stop_gradient(self._scaled_field_jacobian(u, data))
         h = lax.stop_gradient(data.h)
-        identity = jnp.eye(scaled.shape[0], dtype=complex_dtype)
-        blocks = jax.vmap(chord_inverse)(
-            identity - h * jnp.asarray(eigenvalues, dtype=complex_dtype)[:, None, None] * scaled.astype(complex_dtype)
+        if self.stages == 1:
+            return scaled, chord_inverse(self._chord_jacobian_of(scaled, h))
+        eigenvalues, weights = self.tableau().inverse_blocks()
+        real = jnp.asarray(eigenvalues.real, dtype=scaled.dtype)[:, None, None]
+        imaginary = jnp.asarray(eigenvalues.imag, dtype=scaled.dtype)[:, None, None]
+        modulus = jnp.asarray(np.abs(eigenvalues) ** 2, dtype=scaled.dtype)[:, None, None]
+        identity = jnp.eye(scaled.shape[0], dtype=scaled.dtype)
+        products = jax.vmap(chord_inverse)(
+            identity - 2 * h * real * scaled + h * h * modulus * matrix_product(scaled, scaled)
         )
+        turned = matrix_product(scaled[None], products)
+        parts = jnp.concatenate([products - h * real * turned, h * imaginary * turned])
         stages, size = self.stages, scaled.shape[0]
-        parts = jnp.concatenate([blocks.real, blocks.imag]).reshape(-1, size * size)
-        inverse = (jnp.asarray(weights.reshape(stages * stages, -1), dtype=parts.dtype) @ parts).reshape(
-            stages, stages, size, size
-        )
-        return jacobian, inverse.transpose(0, 2, 1, 3).reshape(u.shape[0], u.shape[0]).astype(u.dtype)
+        inverse = (
+            jnp.asarray(weights.reshape(stages * stages, -1), dtype=parts.dtype) @ parts.reshape(-1, size * size)
+        ).reshape(stages, stages, size, size)
+        return scaled, inverse.transpose(0, 2, 1, 3).reshape(u.shape[0], u.shape[0])
+
+    def unformed_chord_matrix(self, size, dtype):
+        """NaN in the form of `chord_matrix`'s: an $N \times N$ matrix."""
+        return jnp.full((size // self.stages, size // self.stages), jnp.nan, dtype)
+
+    def chord_floor(self, scaled, data):
+        r"""`nhjax._solver.base.rounding_floor` of the chord matrix
+        $I - h\,(a \otimes F)$, from $F$: row block $i$ of $|\tilde J|\,r$ is
+        $\sum_j|ha_{ij}|\,|F|\,r_j$ with the diagonal of the block $(i, i)$ taken as
+        $|1 - ha_{ii}F_{kk}|$."""
+        resolution, scale = self.resolution(data)
+        ha = lax.stop_gradient(data.h) * jnp.asarray(self.tableau().a, dtype=scaled.dtype)
+        size = scaled.shape[0]
+        rounding = resolution.reshape(self.stages, size)
+        diagonal, on_diagonal = jnp.diagonal(scaled), jnp.diagonal(ha)[:, None]
+        if size > PRODUCT_LIMIT:
+            spread = jnp.abs(ha) @ (rounding @ jnp.abs(scaled).T)
+        else:
+            # Broadcasts, fused by XLA:CPU, where dots are library calls of their own.
+            spread = jnp.sum(jnp.abs(scaled)[None] * rounding[:, None, :], axis=-1)
+            spread = jnp.sum(jnp.abs(ha)[:, :, None] * spread[None], axis=1)
+        own = spread + rounding * (jnp.abs(1 - on_diagonal * diagonal) - jnp.abs(on_diagonal * diagonal))
+        return floor_of_rounding(own.reshape(-1), scale)
 
     def reuses_chord_matrix(self, system, y0, args) -> bool:
         """`reuse_chord_matrix` (see `nhjax.AbstractMethod.reuses_chord_matrix`)."""

@@ -15,6 +15,7 @@ import pytest
 
 import nhjax as nh
 from nhjax._solver._collocation_tableau import collocation_tableau
+from nhjax._solver.base import rounding_floor
 
 from ..helpers import check_float32, check_per_trajectory_result_codes, fitted_order
 
@@ -134,24 +135,34 @@ def test_the_tableau_is_the_gauss_method():
 
 
 @pytest.mark.parametrize("order", [4, 6, 8, 10, 12])
-def test_the_chord_matrix_comes_with_its_inverse(order):
-    """`chord_matrix` returns I - h (a x F) and its inverse, by the Gauss matrix's
-    eigenvalues (complex pairs, and the real eigenvalue of orders 6 and 10), on the quartic's
-    reduced form (13 unknowns per stage) and the gearbox's (5). The matrix is the one
-    `chord_jacobian` forms."""
+def test_the_chord_matrix_comes_with_its_inverse_and_its_rounding_floor(order):
+    """`chord_matrix` returns the field's derivative F, from which `chord_jacobian`
+    assembles I - h (a x F), and that matrix's inverse, formed by the Gauss matrix's
+    eigenvalues (complex pairs, and the real eigenvalue of orders 6 and 10) in real
+    arithmetic; `chord_floor` reads from F what `rounding_floor` reads from the
+    assembled matrix. On the quartic's reduced form (13 unknowns per stage: matrix
+    products by dots) and the gearbox's (5: by broadcasts), at a step of 0.7, where the
+    matrix is far from I."""
     quartic, gearbox = nh.examples.chaotic_quartic(3), nh.examples.gearbox()
     method = nh.EnergyPreservingCollocation(order)
     for system, y0 in (
         (quartic.canonical, quartic.from_adapted(quartic.initial_state(0.7))),
         (gearbox.canonical, gearbox.random_initial_state(jax.random.key(0))),
     ):
-        h = jnp.asarray(0.25)
+        h = jnp.asarray(0.7)
         guess, data = method.setup(system, 0.0, h, y0, None, method.initial_carry(system, y0, None))
         guess = guess + 0.01  # away from the no-motion guess of a first step
-        jacobian, inverse = method.chord_matrix(guess, data)
-        np.testing.assert_array_equal(jacobian, method.chord_jacobian(guess, data))
+        derivative, inverse = method.chord_matrix(guess, data)
+        jacobian = method.chord_jacobian(guess, data)
+        size = guess.shape[0] // method.stages
+        np.testing.assert_array_equal(
+            jacobian[:size, :size], jnp.eye(size) - h * method.tableau().a[0, 0] * derivative
+        )
         assert float(jnp.max(jnp.abs(jacobian - jnp.eye(guess.shape[0])))) > 0.05
         np.testing.assert_allclose(inverse @ jacobian, jnp.eye(guess.shape[0]), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(
+            method.chord_floor(derivative, data), rounding_floor(jacobian, *method.resolution(data)), rtol=1e-14
+        )
 
 
 def test_float32_and_per_trajectory_codes():
