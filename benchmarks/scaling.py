@@ -46,7 +46,7 @@ rtol = atol = 1e-13; times are medians after set-up and compilation, which are r
 apart. For each target error, the cheapest run of each side that reaches it, and their
 ratio.
 
-Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R] [--parts family,disk,scipy]
+Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R] [--parts family,disk,scipy] [--methods NAME,...]
 [--family synthetic|trailers]. Results go to benchmarks/results/scaling.json (the
 trailers' under "trailers") and a log-log plot beside it, scaling.png (or
 scaling_trailers.png).
@@ -201,11 +201,22 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--parts", default="family,disk,scipy")
     parser.add_argument("--family", choices=sorted(FAMILIES), default="synthetic")
+    parser.add_argument(
+        "--methods", default=None,
+        help="comma-separated registry names (default: every method for canonical systems); the rows "
+        "of the sizes run hold only these, and the sizes not run keep their last rows",
+    )
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "scaling.json"))
     options = parser.parse_args()
     sizes = [int(size) for size in options.sizes.split(",")]
     parts = options.parts.split(",")
     methods = {name: method for name, method in METHODS.items() if not method.adapted}
+    if options.methods:
+        chosen = options.methods.split(",")
+        unknown = sorted(set(chosen) - set(methods))
+        if unknown:
+            parser.error(f"--methods: not methods for canonical systems: {', '.join(unknown)}")
+        methods = {name: methods[name] for name in chosen}
     path = pathlib.Path(options.out)
     # Parts not run this time keep their last results.
     results = json.loads(path.read_text()) if path.exists() else {}
@@ -218,7 +229,8 @@ def main():
         return
 
     family, description, axis = FAMILIES[options.family]
-    table = {}
+    stored = results if options.family == "synthetic" else results.get(options.family, {})
+    table = {int(n): row for n, row in stored.get("sizes", {}).items() if int(n) not in sizes}
     for n in sizes:
         steps = _steps(n)
         system, args, y0, k = family(n)
@@ -228,7 +240,7 @@ def main():
             steps=steps,
             **_methods_in_turns(system, methods, y0, H, steps, options.repeats, args, dict(yardstick=yardstick)),
         )
-        table[n] = row
+        table = dict(sorted({**table, n: row}.items()))
         print(
             f"n = {n:3d}, k = {k:2d}, {steps} steps: yardstick {row['yardstick']['us_per_step']:.1f} µs/step; "
             + _method_columns(row, methods),
@@ -236,23 +248,32 @@ def main():
         )
         # Written after each size: the largest sizes take longest, and a run stopped
         # there keeps the others.
-        growth = _record(results, options, table, description, ["yardstick", *methods])
+        growth = _record(results, options, table, description)
 
     for name, exponent in growth.items():
         print(f"  {name:<18} grows like n^{exponent:.2f} from n = 16 on")
     plot = pathlib.Path(options.out)
     plot = plot.with_suffix(".png") if options.family == "synthetic" else plot.with_name(
         f"{plot.stem}_{options.family}.png")
-    _plot(table, ["yardstick", *methods], plot, axis)
+    _plot(table, plot, axis)
 
 
-def _record(results, options, table, description, names):
-    """The family's rows so far, with each method's fitted growth from n = 16 on, into
-    `results` and the JSON file (the synthetic family's at the top level, another's
-    under its name); returns the growth exponents."""
-    large = [n for n in table if n >= 16]
+def _timed_names(table) -> list[str]:
+    """The runs timed at some size of `table`, in the order they first appear."""
+    names = {}
+    for row in table.values():
+        names.update((name, None) for name, figures in row.items() if isinstance(figures, dict))
+    return list(names)
+
+
+def _record(results, options, table, description):
+    """The family's rows so far, with each run's fitted growth from n = 16 on (over the
+    sizes at which it was timed), into `results` and the JSON file (the synthetic
+    family's at the top level, another's under its name); returns the growth
+    exponents."""
     growth = {}
-    for name in names:
+    for name in _timed_names(table):
+        large = [n for n in table if n >= 16 and name in table[n]]
         if len(large) >= 2:
             times = [table[n][name]["us_per_step"] for n in large]
             growth[name] = float(np.polyfit(np.log(large), np.log(times), 1)[0])
@@ -376,15 +397,15 @@ def _against_scipy(repeats):
                 cheapest=cheapest)
 
 
-def _plot(table, names, path, axis):
+def _plot(table, path, axis):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    sizes = sorted(table)
     figure, axes = plt.subplots(figsize=(6, 4.5))
-    for name in names:
+    for name in _timed_names(table):
+        sizes = [n for n in sorted(table) if name in table[n]]
         axes.loglog(sizes, [table[n][name]["us_per_step"] for n in sizes], "o-", label=name)
     axes.set_xlabel(axis)
     axes.set_ylabel("µs per step")
