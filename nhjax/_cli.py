@@ -374,8 +374,13 @@ def main(argv=None) -> int:
     simulate.add_argument("--method", required=True, choices=METHODS, metavar="METHOD", help=f"one of {', '.join(METHODS)} (see below)")
     simulate.add_argument(
         "--order", type=int, choices=Composition.orders, default=2, metavar="P",
-        help="compose the method symmetrically to order P, one of 2 (the method itself), 4, 6, 8 "
-        "(Suzuki's 5, Kahan & Li's 9 and 17 substeps per step); not with tsit5",
+        help="compose the method symmetrically to order P, one of 2 (the method itself), "
+        + ", ".join(
+            "{} ({}, {} substeps a step)".format(order, *Composition.recommended_scheme(order))
+            for order in Composition.orders
+            if order != 2
+        )
+        + "; not with tsit5",
     )
     simulate.add_argument("--dt", type=float, required=True, metavar="H", help="step size h > 0")
     simulate.add_argument("--t1", type=float, required=True, metavar="T", help="final time, a whole number of steps: t1/h steps are taken")

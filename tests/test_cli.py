@@ -239,6 +239,10 @@ def test_simulate_help_names_every_option_system_and_method():
         assert f"\n  {name}" in out.stdout, name
     # A name longer than its column stands on its own line, not glued to its text.
     assert "\n  dopri8-projection\n" in out.stdout and "\n  MODULE:FACTORY\n" in out.stdout
+    # --order names each scheme and its substeps (Suzuki's 5, Kahan & Li's 9 and 17).
+    text = " ".join(out.stdout.split())
+    for described in ("4 (suzuki-4, 5 substeps a step)", "6 (kahan-li-6, 9 substeps", "8 (kahan-li-8, 17 substeps"):
+        assert described in text, described
 
 
 def test_simulate_composes_to_higher_order(tmp_path):

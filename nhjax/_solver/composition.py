@@ -233,6 +233,13 @@ class Composition(diffrax.AbstractSolver):
     # `isinstance` checks as what it wraps, and a composition would pass as an
     # `AbstractMethod` whose one-root step it does not have (its step is `stages` root
     # finds, of another order, with statistics of its own).
+    @classmethod
+    def recommended_scheme(cls, order: int) -> tuple[str | None, int]:
+        """The scheme `order` picks: its name in `COMPOSITION_SCHEMES` (`None` at order
+        2, the method itself) and its substeps per step."""
+        scheme = RECOMMENDED_SCHEMES[order]
+        return scheme, 1 if scheme is None else len(COMPOSITION_SCHEMES[scheme]["coefficients"])
+
     method: AbstractMethod
     scheme_order: int = eqx.field(static=True)
     coefficients: tuple[float, ...] = eqx.field(static=True)
