@@ -229,10 +229,6 @@ class Composition(diffrax.AbstractSolver):
     # The orders `order` takes (each with its recommended scheme).
     orders: ClassVar[tuple[int, ...]] = tuple(RECOMMENDED_SCHEMES)
 
-    # Not a `diffrax.AbstractWrappedSolver` (as `nhjax.Projection` is): a wrapper passes
-    # `isinstance` checks as what it wraps, and a composition would pass as an
-    # `AbstractMethod` whose one-root step it does not have (its step is `stages` root
-    # finds, of another order, with statistics of its own).
     @classmethod
     def recommended_scheme(cls, order: int) -> tuple[str | None, int]:
         """The scheme `order` picks: its name in `COMPOSITION_SCHEMES` (`None` at order
@@ -240,6 +236,10 @@ class Composition(diffrax.AbstractSolver):
         scheme = RECOMMENDED_SCHEMES[order]
         return scheme, 1 if scheme is None else len(COMPOSITION_SCHEMES[scheme]["coefficients"])
 
+    # Not a `diffrax.AbstractWrappedSolver` (as `nhjax.Projection` is): a wrapper passes
+    # `isinstance` checks as what it wraps, and a composition would pass as an
+    # `AbstractMethod` whose one-root step it does not have (its step is `stages` root
+    # finds, of another order, with statistics of its own).
     method: AbstractMethod
     scheme_order: int = eqx.field(static=True)
     coefficients: tuple[float, ...] = eqx.field(static=True)

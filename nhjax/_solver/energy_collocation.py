@@ -395,7 +395,7 @@ class EnergyPreservingCollocation(AbstractMethod):
         return scaled, inverse.transpose(0, 2, 1, 3).reshape(u.shape[0], u.shape[0])
 
     def unformed_chord_matrix(self, size, dtype):
-        """NaN in the form of `chord_matrix`'s: an $N \times N$ matrix."""
+        r"""NaN in the form of `chord_matrix`'s: an $N \times N$ matrix."""
         return jnp.full((size // self.stages, size // self.stages), jnp.nan, dtype)
 
     def chord_floor(self, scaled, data):
