@@ -18,11 +18,9 @@ Two families (`--family`), n coordinates each:
 
 Steps of h = 0.05; the number of steps falls with n (`_steps`) so that the slowest runs
 stay within minutes. The trailers' row at n = 64 holds GONZALEZ-R and SI-DLA only
-(`--methods`): on a machine of two cores, the energy-preserving collocation of order 4
-with 61 trailers (from n = 60 on) hangs in jaxlib's LAPACK kernels, as SPARK did once
-in a whole run: its stages' batched triangular solves each wait, on the two threads of
-XLA's intra-op pool, for parts queued behind one another. Pinned to one core
-(`taskset -c 0`) the same run completes.
+(`--methods`): the first attempt at the whole row hung in jaxlib's batched LAPACK
+kernels (the collocation's stages, from 57 trailers on, on two cores), which nhjax has
+called one matrix at a time since (`nhjax._linalg.lapack_unbatched`).
 
 For each n and method: median µs/step (`--repeats` timed runs after a warm-up, the
 methods and the yardstick of one size timed in turns, `run_and_time_interleaved`, so

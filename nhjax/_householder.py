@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._linalg import safe_norm
+from ._linalg import lapack_unbatched, safe_norm, triangular_solve
 from ._rare_branch import rarely
 
 
@@ -46,6 +46,8 @@ from ._rare_branch import rarely
 # steps forward and k again transposed, which made most of a GONZALEZ-R residual
 # there.
 UNROLLED_REFLECTIONS = 4
+# NumPy's "raw" QR, LAPACK's `geqrf`, never on a batch (`nhjax._linalg.lapack_unbatched`).
+_raw_qr = lapack_unbatched(lambda a_t: jnp.linalg.qr(a_t, mode="raw"))
 
 
 def _reflection(r, j, given_sign):
@@ -133,7 +135,7 @@ def _lapack_reflectors(a_t):
     of $R$ the frame never reads), and $w = s\,e_1$ with $s = \mathrm{sign}(\beta)$."""
     n, k = a_t.shape
     # NumPy's "raw" mode: LAPACK's packed factorisation, transposed.
-    packed_t, taus = jnp.linalg.qr(a_t, mode="raw")
+    packed_t, taus = _raw_qr(a_t)
     packed = packed_t.T
     rows, columns = jnp.arange(n)[:, None], jnp.arange(k)[None, :]
     v = jnp.where(rows > columns, packed, 0.0) + (rows == columns).astype(a_t.dtype)
@@ -203,15 +205,15 @@ def _reflector_tangents(a_t, vectors, norms, a_t_dot):
     k = a_t.shape[1]
     w = vectors.T
     w_top = w[:k]
-    v = lax.linalg.triangular_solve(_wy_factor(w), w_top.T, left_side=True, lower=False)
+    v = triangular_solve(_wy_factor(w), w_top.T, left_side=True, lower=False)
     q1 = jnp.eye(*a_t.shape, dtype=a_t.dtype) - w @ v
     r = _nonzero_diagonal(jnp.triu(q1.T @ a_t))
-    a_r = lax.linalg.triangular_solve(r, a_t_dot, left_side=False, lower=False)
+    a_r = triangular_solve(r, a_t_dot, left_side=False, lower=False)
     m = q1.T @ a_r
     lower = jnp.tril(m, -1)
     q1_dot = a_r - q1 @ (m - lower + lower.T)
-    b_dot_v = lax.linalg.triangular_solve(_nonzero_diagonal(v), -q1_dot, left_side=False, lower=False)
-    g = lax.linalg.triangular_solve(_nonzero_diagonal(w_top), b_dot_v[:k], left_side=True, lower=True)
+    b_dot_v = triangular_solve(_nonzero_diagonal(v), -q1_dot, left_side=False, lower=False)
+    g = triangular_solve(_nonzero_diagonal(w_top), b_dot_v[:k], left_side=True, lower=True)
     base = jnp.concatenate([w_top @ jnp.tril(g, -1), b_dot_v[k:] - w[k:] @ jnp.triu(g)])
     w_dot = base - w * jnp.sum(w * base, axis=0)
     norms_dot = jnp.diagonal(m) * norms
@@ -308,7 +310,7 @@ def _wy_reflect(x, vectors, factor, reverse: bool):
     reflections is k sequential steps, and as many again transposed."""
     w = vectors.T
     coefficients = w.T @ (x if x.ndim == 2 else x[:, None])
-    solved = lax.linalg.triangular_solve(factor, coefficients, left_side=True, lower=False, transpose_a=not reverse)
+    solved = triangular_solve(factor, coefficients, left_side=True, lower=False, transpose_a=not reverse)
     return x - (w @ solved if x.ndim == 2 else w @ solved[:, 0])
 
 

@@ -6,7 +6,8 @@ arithmetic, cannot be constant-folded when its input is constant (a constant met
 and under `vmap` becomes a loop of calls. Elimination unrolled over the (static) size
 is a few fused vector operations per column, vectorises across a batch, and is
 differentiable like any other `jax.numpy` code. Above `UNROLL_LIMIT` (for symmetric
-positive definite solves `SPD_UNROLL_LIMIT`) the LAPACK routines are used.
+positive definite solves `SPD_UNROLL_LIMIT`) the LAPACK routines are used, never on a
+batch (`lapack_unbatched`).
 """
 
 import functools
@@ -28,8 +29,88 @@ UNROLL_LIMIT = 16
 # (`benchmarks/scaling.py --family trailers`).
 SPD_UNROLL_LIMIT = 7
 PRODUCT_LIMIT = 32
+# LAPACK is called on one matrix at a time from this many rows on (`lapack_unbatched`).
+LAPACK_UNBATCHED_FROM = 32
 # Matrix products of tiny matrices are broadcasts up to this size (`matrix_product`).
 MATRIX_PRODUCT_LIMIT = 8
+
+
+def lapack_unbatched(routine: Callable[..., Any], fold: str | None = None) -> Callable[..., Any]:
+    """`routine` (one of jax's LAPACK routines, its first operand a matrix), which under
+    `vmap` is never called on a batch of matrices of `LAPACK_UNBATCHED_FROM` rows or
+    more: where only the right-hand side `b` (the second operand) is batched, its batch
+    becomes more columns (`fold="columns"`, for $ax = b$) or rows (`fold="rows"`, for
+    $xa = b$) of one call; otherwise the batch's members are called one after another
+    (`lax.map`).
+
+    jaxlib's CPU kernels split a batched call over XLA's intra-op thread pool, and the
+    thread that made the call waits for its parts: where every thread of the pool does
+    so at once (two batched calls in one step's program on a machine of two cores), the
+    parts never run and the program hangs. The energy-preserving collocation's stages
+    on a tractor pulling 57 or more trailers did (jax 0.10.2; its matrices have 58 to 64
+    rows; not with 53 trailers). Called on one member, a routine runs on its caller's
+    thread. Smaller matrices keep the batched call: members called one at a time made
+    a vmapped batch of 32 tractors with 5 trailers 1.45 times slower, and the
+    collocation's stages on 13 trailers 1.2 times. Evaluated only: the callers take
+    derivatives from a rule around it (`jax.lax.custom_linear_solve`,
+    `nhjax._householder`'s closed form) or cut them."""
+
+    @jax.custom_batching.custom_vmap
+    def unbatched(*operands):
+        return routine(*operands)
+
+    @unbatched.def_vmap
+    def _batched(axis_size, in_batched, *operands):
+        if max(jnp.shape(operands[0])[-2:]) < LAPACK_UNBATCHED_FROM:
+            values = jax.vmap(routine, in_axes=tuple(0 if batched else None for batched in in_batched))(*operands)
+            return values, jax.tree.map(lambda _: True, values)
+        if fold is not None and not in_batched[0]:
+            a, b = operands
+            if fold == "columns":
+                x = unbatched(a, jnp.moveaxis(b, 0, -1).reshape(b.shape[1], -1))
+                return jnp.moveaxis(x.reshape(*b.shape[1:], axis_size), -1, 0), True
+            return unbatched(a, b.reshape(-1, b.shape[-1])).reshape(b.shape), True
+        members = tuple(
+            x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))) for x, batched in zip(operands, in_batched)
+        )
+        values = lax.map(lambda member: unbatched(*member), members)
+        return values, jax.tree.map(lambda _: True, values)
+
+    return unbatched
+
+
+_cholesky_solve = lapack_unbatched(lambda a, b: jsl.cho_solve(jsl.cho_factor(a), b), fold="columns")
+_lu_solve = lapack_unbatched(jnp.linalg.solve, fold="columns")
+_lapack_inverse = lapack_unbatched(jnp.linalg.inv)
+
+
+@functools.cache
+def _triangular_routine(left_side: bool, lower: bool, transpose_a: bool) -> Callable[..., Any]:
+    return lapack_unbatched(
+        functools.partial(lax.linalg.triangular_solve, left_side=left_side, lower=lower, transpose_a=transpose_a),
+        fold="columns" if left_side else "rows",
+    )
+
+
+def triangular_solve(
+    a: Float[Array, "k k"], b: Float[Array, "..."], *, left_side: bool, lower: bool, transpose_a: bool = False
+) -> Array:
+    """`jax.lax.linalg.triangular_solve` (of `a`'s lower or upper triangle), never called
+    on a batch (`lapack_unbatched`), differentiated as a linear solve
+    (`jax.lax.custom_linear_solve`): by more solves with the triangle and its
+    transpose."""
+    triangle = jnp.tril(a) if lower else jnp.triu(a)
+    operator = triangle.T if transpose_a else triangle
+
+    def matvec(x):
+        return operator @ x if left_side else x @ operator
+
+    return lax.custom_linear_solve(
+        matvec,
+        b,
+        solve=lambda _, rhs: _triangular_routine(left_side, lower, transpose_a)(a, rhs),
+        transpose_solve=lambda _, rhs: _triangular_routine(left_side, lower, not transpose_a)(a, rhs),
+    )
 
 
 def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
@@ -54,7 +135,7 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
 def _eliminate_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
     n = a.shape[0]
     if n > SPD_UNROLL_LIMIT:
-        return jsl.cho_solve(jsl.cho_factor(a), b)
+        return _cholesky_solve(a, b)
     vector = b.ndim == 1
     augmented = jnp.concatenate([a, b[:, None] if vector else b], axis=1)
     for j in range(n):
@@ -74,10 +155,11 @@ def inverse(a: Float[Array, "n n"], pivoting: bool = True) -> Float[Array, "n n"
     (`is_diagonally_dominant`), whose pivots stay away from zero (growth factor at most
     2: Wilkinson; Higham, *Accuracy and Stability of Numerical Algorithms*, 2nd ed.,
     Thm. 9.9 and §14.4); otherwise a pivot may vanish, and the entries are then
-    non-finite or wrong."""
+    non-finite or wrong. Above `UNROLL_LIMIT`, LAPACK's, never called on a batch
+    (`lapack_unbatched`)."""
     n = a.shape[0]
     if n > UNROLL_LIMIT:
-        return jnp.linalg.inv(a)
+        return _lapack_inverse(a)
     augmented = jnp.concatenate([a, jnp.eye(n, dtype=a.dtype)], axis=1)
     rows = jnp.arange(n)
     for j in range(n):
@@ -99,9 +181,16 @@ def solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
     LAPACK's LU is a factorisation, two triangular solves and, transposed, a sort that
     turns its pivots into a permutation: separate library calls on XLA:CPU, which cost
     more than the arithmetic (`benchmarks/gradients.py`). The inverse's rounding is a
-    solve's for a well-conditioned `a`."""
+    solve's for a well-conditioned `a`. Above `UNROLL_LIMIT`, LAPACK's LU never called on
+    a batch (`lapack_unbatched`), differentiated as a linear solve
+    (`jax.lax.custom_linear_solve`), by more solves with `a` and its transpose."""
     if a.shape[0] > UNROLL_LIMIT:
-        return jnp.linalg.solve(a, b)
+        return lax.custom_linear_solve(
+            lambda x: a @ x,
+            b,
+            solve=lambda _, rhs: _lu_solve(a, rhs),
+            transpose_solve=lambda _, rhs: _lu_solve(a.T, rhs),
+        )
     return inverse(a) @ b
 
 

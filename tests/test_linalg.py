@@ -1,5 +1,7 @@
 """The unrolled small dense linear algebra against LAPACK, on random matrices."""
 
+import re
+
 import hypothesis.strategies as st
 import jax
 import jax.numpy as jnp
@@ -10,12 +12,14 @@ from hypothesis import given, settings
 from nhjax._linalg import (
     inverse,
     is_diagonally_dominant,
+    LAPACK_UNBATCHED_FROM,
     product,
     PRODUCT_LIMIT,
     safe_norm,
     solve,
     solve_spd,
     SPD_UNROLL_LIMIT,
+    triangular_solve,
     UNROLL_LIMIT,
 )
 
@@ -150,3 +154,73 @@ def test_spd_solve_is_differentiated_by_one_more_solve():
     p = jnp.arange(1.0, n + 1.0)
     solve_size = _traced_size(lambda s: solve_spd(a(s), p), 0.3) - _traced_size(a, 0.3)
     assert 6 * solve_size > _traced_size(jax.jacfwd(jax.grad(lambda s: p @ solve_spd(a(s), p))), 0.3)
+
+
+def _batched_lapack_calls(function, *operands) -> list[str]:
+    """The LAPACK calls of `function`'s compiled program whose operand has a batch
+    axis (a 3-D shape)."""
+    text = jax.jit(function).lower(*operands).compile().as_text()
+    return [
+        line.split("=")[1].split("custom-call")[0]
+        for line in text.splitlines()
+        if "custom-call(" in line and "lapack" in line and re.search(r"f64\[\d+,\d+,\d+\]", line.split("custom-call")[0])
+    ]
+
+
+def test_lapack_is_never_called_on_a_batch_of_large_matrices():
+    """Under `vmap`, matrices of `LAPACK_UNBATCHED_FROM` rows or more reach LAPACK one at
+    a time (`lapack_unbatched`: jaxlib's batched kernels can hang XLA's thread pool), a
+    batch of right-hand sides for one matrix as the columns or rows of one call, with
+    the values of the calls made one by one, and derivatives those of jax's own
+    routines; smaller matrices keep the batched call."""
+    n = LAPACK_UNBATCHED_FROM + 8
+    keys = jax.random.split(jax.random.key(3), 3)
+    a = jax.random.normal(keys[0], (3, n, n)) + 2 * n**0.5 * jnp.eye(n)
+    spd = a @ jnp.swapaxes(a, 1, 2) + jnp.eye(n)
+    b = jax.random.normal(keys[1], (3, n))
+    columns = jax.random.normal(keys[2], (3, n, 2))
+    triangular = {
+        "left, upper": dict(left_side=True, lower=False),
+        "left, lower, transposed": dict(left_side=True, lower=True, transpose_a=True),
+        "right, upper": dict(left_side=False, lower=False),
+    }
+    cases = {
+        "solve_spd": (solve_spd, spd, b),
+        "solve": (solve, a, b),
+        **{
+            f"triangular_solve {name}": (
+                lambda m, r, flags=flags: triangular_solve(m, r, **flags),
+                a,
+                columns if flags["left_side"] else jnp.swapaxes(columns, 1, 2),
+            )
+            for name, flags in triangular.items()
+        },
+    }
+    for name, (function, matrices, rhs) in cases.items():
+        one_by_one = jnp.stack([function(m, r) for m, r in zip(matrices, rhs)])
+        for in_axes in ((0, 0), (None, 0)):
+            matrix = matrices if in_axes[0] == 0 else matrices[0]
+            expected = one_by_one if in_axes[0] == 0 else jnp.stack([function(matrices[0], r) for r in rhs])
+            batched = jax.vmap(function, in_axes=in_axes)
+            np.testing.assert_allclose(batched(matrix, rhs), expected, rtol=1e-12, atol=1e-12, err_msg=name)
+            assert _batched_lapack_calls(batched, matrix, rhs) == [], name
+    batched_inverse = jax.vmap(inverse)
+    np.testing.assert_allclose(batched_inverse(a), jnp.linalg.inv(a), rtol=1e-12, atol=1e-12)
+    assert _batched_lapack_calls(batched_inverse, a) == []
+    # Derivatives through the linear-solve rules, against jax's own routines.
+    loss = lambda solver: lambda m, r: jnp.sum(jnp.sin(solver(m, r)))
+    for ours, theirs in (
+        (solve, jnp.linalg.solve),
+        (
+            lambda m, r: triangular_solve(m, r, left_side=True, lower=False),
+            lambda m, r: jax.lax.linalg.triangular_solve(m, r, left_side=True, lower=False),
+        ),
+    ):
+        rhs = b[0] if ours is solve else columns[0]
+        for argument in (0, 1):
+            np.testing.assert_allclose(
+                jax.grad(loss(ours), argument)(a[0], rhs), jax.grad(loss(theirs), argument)(a[0], rhs), rtol=1e-10
+            )
+    small = a[:, :8, :8]
+    assert _batched_lapack_calls(jax.vmap(lambda m: jnp.linalg.inv(m)), small)  # the check sees batched calls
+    assert _batched_lapack_calls(jax.vmap(lambda m, r: triangular_solve(m, r, left_side=True, lower=False)), small, columns[:, :8])
