@@ -33,6 +33,18 @@ PRODUCT_LIMIT = 32
 LAPACK_UNBATCHED_FROM = 32
 # Matrix products of tiny matrices are broadcasts up to this size (`matrix_product`).
 MATRIX_PRODUCT_LIMIT = 8
+# XLA:CPU runs the operations of a computation (a loop's body, a branch) one after
+# another only where every array they read or write, its nested computations' included,
+# holds at most this many bytes; otherwise it hands them to its thread pool, whose
+# scheduling costs more than the tiny operations of an iteration do. A single larger
+# array in a chord iteration's body puts every operation of the body on the pool:
+# Euler's disk stepped 1.4 to 3 times slower so.
+SEQUENTIAL_BYTES = 512
+# A batch of at most this many small eliminations whose batched arrays would not be
+# small is eliminated member by member (`_eliminate_spd_folded`).
+MEMBERS_UNROLLED = 4
+# At most this many blocks in `row_blocks`.
+ROW_BLOCK_LIMIT = 16
 
 
 def lapack_unbatched(routine: Callable[..., Any], fold: str | None = None) -> Callable[..., Any]:
@@ -125,8 +137,43 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
     the elimination, which would grow the traced graph several times over (a metric's
     inverse inside a Hamiltonian is differentiated twice for a chord matrix)."""
     return lax.custom_linear_solve(
-        lambda x: a @ x, b, solve=lambda _, rhs: _eliminate_spd(a, rhs), symmetric=True
+        lambda x: a @ x, b, solve=lambda _, rhs: _eliminate_spd_folded(a, rhs), symmetric=True
     )
+
+
+@jax.custom_batching.custom_vmap
+def _eliminate_spd_folded(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
+    """`_eliminate_spd`, which under `vmap` with only the right-hand side batched (one
+    metric, several momenta: the velocities at $X\rho$ and at the rows of $A$ in
+    `nhjax._reduced.momentum_by_projection`, a gradient and its tangents) eliminates
+    once with the batch as more columns.
+
+    Besides doing the elimination once, this keeps the arrays small: XLA:CPU runs the
+    operations of a loop body one after another only where every array they touch
+    holds at most 512 bytes, and otherwise hands them to its thread pool, whose
+    scheduling then costs more than tiny operations do. Three 5 x 5 eliminations of
+    Euler's disk batched (5 x 6 augmented, 720 bytes) put its chord iteration on the
+    pool; folded (5 x 8) they do not. For the same reason a batch of a few matrices
+    (`MEMBERS_UNROLLED`: the stages of a collocation step), small themselves but
+    whose batched eliminations would exceed `SEQUENTIAL_BYTES`, is eliminated member by
+    member."""
+    return _eliminate_spd(a, b)
+
+
+@_eliminate_spd_folded.def_vmap
+def _eliminate_spd_batched(axis_size, in_batched, a, b):
+    a_batched, b_batched = in_batched
+    if not a_batched:
+        columns = _eliminate_spd_folded(a, jnp.moveaxis(b, 0, -1).reshape(b.shape[1], -1))
+        return jnp.moveaxis(columns.reshape(*b.shape[1:], axis_size), -1, 0), True
+    b = b if b_batched else jnp.broadcast_to(b, (axis_size, *b.shape))
+    member_bytes = a.dtype.itemsize * a.shape[-1] * (a.shape[-1] + b[0].size // a.shape[-1])
+    if axis_size <= MEMBERS_UNROLLED and axis_size * member_bytes > SEQUENTIAL_BYTES >= a.nbytes:
+        # A few members (the stages of a collocation step), each small enough to be
+        # eliminated in sequence where the batch is not; only where the batch of
+        # matrices is small itself, or the body holds a large array anyway.
+        return jnp.stack([_eliminate_spd_folded(a[i], b[i]) for i in range(axis_size)]), True
+    return jax.vmap(_eliminate_spd)(a, b), True
 
 
 # The eliminations are jitted: traced once per shape however often a step calls them
@@ -160,16 +207,21 @@ def inverse(a: Float[Array, "n n"], pivoting: bool = True) -> Float[Array, "n n"
     n = a.shape[0]
     if n > UNROLL_LIMIT:
         return _lapack_inverse(a)
-    augmented = jnp.concatenate([a, jnp.eye(n, dtype=a.dtype)], axis=1)
+    # The two halves of the augmented matrix [a | I] are eliminated side by side, not
+    # joined: each is n x n, small enough for XLA:CPU to run a step's operations one
+    # after another up to n = 8 (`SEQUENTIAL_BYTES`), where [a | I] is so only to n = 5.
+    left, right = a, jnp.eye(n, dtype=a.dtype)
     rows = jnp.arange(n)
     for j in range(n):
         if pivoting:
-            pivot = j + jnp.argmax(jnp.abs(augmented[j:, j]))
+            pivot = j + jnp.argmax(jnp.abs(left[j:, j]))
             order = jnp.where(rows == j, pivot, jnp.where(rows == pivot, j, rows))
-            augmented = augmented[order]
-        row = augmented[j] / augmented[j, j]
-        augmented = (augmented - jnp.outer(augmented[:, j], row)).at[j].set(row)
-    return augmented[:, n:]
+            left, right = left[order], right[order]
+        multipliers, pivot_value = left[:, j], left[j, j]
+        row_left, row_right = left[j] / pivot_value, right[j] / pivot_value
+        left = (left - jnp.outer(multipliers, row_left)).at[j].set(row_left)
+        right = (right - jnp.outer(multipliers, row_right)).at[j].set(row_right)
+    return right
 
 
 def solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
@@ -227,6 +279,26 @@ def matrix_product(a: Float[Array, "*b m k"], b: Float[Array, "*b k n"]) -> Floa
     if max(a.shape[-2:] + b.shape[-2:]) > MATRIX_PRODUCT_LIMIT:
         return jnp.matmul(a, b)
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
+def row_blocks(matrix: Float[Array, "m n"]) -> tuple[Float[Array, "r n"], ...]:
+    """`matrix` as consecutive blocks of rows of at most `SEQUENTIAL_BYTES` each, for a
+    matrix read in a loop's body (`blocked_product`); the whole matrix as one block
+    where it is that small already, or where it would take more than
+    `ROW_BLOCK_LIMIT` blocks (then its rows are long enough that the body's other
+    arrays are large too)."""
+    rows, columns = matrix.shape
+    per_block = max(1, SEQUENTIAL_BYTES // (columns * matrix.dtype.itemsize))
+    if per_block >= rows or -(-rows // per_block) > ROW_BLOCK_LIMIT:
+        return (matrix,)
+    return tuple(matrix[start : start + per_block] for start in range(0, rows, per_block))
+
+
+def blocked_product(blocks: tuple[Float[Array, "r n"], ...], vector: Float[Array, " n"]) -> Float[Array, " m"]:
+    """The product of the matrix whose `row_blocks` are `blocks` with `vector`."""
+    if len(blocks) == 1:
+        return blocks[0] @ vector
+    return jnp.concatenate([block @ vector for block in blocks])
 
 
 def safe_norm(v: Float[Array, " n"]) -> Float[Array, ""]:

@@ -10,12 +10,16 @@ import pytest
 from hypothesis import given, settings
 
 from nhjax._linalg import (
+    blocked_product,
     inverse,
     is_diagonally_dominant,
     LAPACK_UNBATCHED_FROM,
     product,
     PRODUCT_LIMIT,
+    row_blocks,
+    ROW_BLOCK_LIMIT,
     safe_norm,
+    SEQUENTIAL_BYTES,
     solve,
     solve_spd,
     SPD_UNROLL_LIMIT,
@@ -224,3 +228,58 @@ def test_lapack_is_never_called_on_a_batch_of_large_matrices():
     small = a[:, :8, :8]
     assert _batched_lapack_calls(jax.vmap(lambda m: jnp.linalg.inv(m)), small)  # the check sees batched calls
     assert _batched_lapack_calls(jax.vmap(lambda m, r: triangular_solve(m, r, left_side=True, lower=False)), small, columns[:, :8])
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+@pytest.mark.parametrize("n", [3, 8, 9, 13, 26, 40])
+def test_row_blocks_cover_the_matrix_in_small_blocks(n, dtype):
+    """`row_blocks` splits a matrix into blocks of consecutive rows of at most
+    `SEQUENTIAL_BYTES` each where that takes at most `ROW_BLOCK_LIMIT` blocks, and
+    `blocked_product` of the blocks with a vector is the matrix's product."""
+    matrix = jax.random.normal(jax.random.key(n), (n, n), dtype=dtype)
+    vector = jax.random.normal(jax.random.key(n + 1), (n,), dtype=dtype)
+    blocks = row_blocks(matrix)
+    np.testing.assert_array_equal(jnp.concatenate(blocks), matrix)
+    itemsize = jnp.dtype(dtype).itemsize
+    fits = n * n * itemsize <= SEQUENTIAL_BYTES
+    splits = -(-n // max(1, SEQUENTIAL_BYTES // (n * itemsize))) <= ROW_BLOCK_LIMIT
+    if fits or not splits:
+        assert len(blocks) == 1
+    else:
+        assert len(blocks) > 1 and all(block.size * itemsize <= SEQUENTIAL_BYTES for block in blocks)
+    tolerance = 1e-12 if dtype == jnp.float64 else 1e-5
+    np.testing.assert_allclose(blocked_product(blocks, vector), np.asarray(matrix) @ np.asarray(vector), rtol=tolerance, atol=tolerance * n)
+
+
+def test_spd_solve_under_vmap_eliminates_once_with_the_batch_as_columns():
+    """Under `vmap` with one matrix and a batch of right-hand sides (a vector or a
+    matrix each), `solve_spd`'s unrolled elimination runs once on the batch as more
+    columns, with the values of the solves one by one, also inside a second `vmap`
+    that batches the matrix too; no array of the program is then larger than one
+    matrix with its columns."""
+    n = 5
+    keys = jax.random.split(jax.random.key(7), 3)
+    a = jax.random.normal(keys[0], (2, n, n))
+    spd = a @ jnp.swapaxes(a, 1, 2) + jnp.eye(n)
+    vectors = jax.random.normal(keys[1], (2, 3, n))
+    matrices = jax.random.normal(keys[2], (2, 3, n, 2))
+    for rhs in (vectors, matrices):
+        one_by_one = jnp.stack([jnp.stack([jnp.linalg.solve(m, r) for r in rs]) for m, rs in zip(spd, rhs)])
+        over_rhs = jax.jit(jax.vmap(solve_spd, in_axes=(None, 0)))
+        np.testing.assert_allclose(over_rhs(spd[0], rhs[0]), one_by_one[0], rtol=1e-12, atol=1e-12)
+        both = jax.jit(jax.vmap(jax.vmap(solve_spd, in_axes=(None, 0))))
+        np.testing.assert_allclose(both(spd, rhs), one_by_one, rtol=1e-12, atol=1e-12)
+        folded = n * (n + 3 * (rhs[0, 0].size // n))
+        assert _largest_array(over_rhs, spd[0], rhs[0]) <= folded
+        # Two matrices, each with its three right-hand sides folded (5 x 8 or 5 x 11):
+        # eliminated one after the other, as together they would exceed SEQUENTIAL_BYTES.
+        assert 2 * 8 * folded > SEQUENTIAL_BYTES >= 8 * folded
+        assert _largest_array(both, spd, rhs) * 8 <= SEQUENTIAL_BYTES
+
+
+def _largest_array(function, *operands) -> int:
+    """The most elements of a float64 array in `function`'s compiled program."""
+    return max(
+        int(np.prod([int(d) for d in dims.split(",") if d]))
+        for dims in re.findall(r"f64\[([\d,]*)\]", function.lower(*operands).compile().as_text())
+    )

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
-from .._linalg import inverse, is_diagonally_dominant, UNROLL_LIMIT
+from .._linalg import blocked_product, inverse, is_diagonally_dominant, row_blocks, UNROLL_LIMIT
 from .._rare_branch import rarely
 
 
@@ -49,7 +49,8 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
 
 
 class _ChordState(eqx.Module):
-    inverse: Float[Array, "n n"]
+    # Inside `PresetChord.solve`'s loop, as `row_blocks`.
+    inverse: Float[Array, "n n"] | tuple[Float[Array, "r n"], ...]
     floor: Float[Array, " n"]
     correction_floor: Float[Array, " n"]
     # The sizes of the last correction and of the one before it, the ratio of the two
@@ -161,7 +162,7 @@ class PresetChord(optx.AbstractRootFinder):
     def step(self, fn, y, args, options, state, tags):
         del options, tags
         residual, aux = fn(y, args)
-        diff = state.inverse @ residual
+        diff = blocked_product(state.inverse, residual) if isinstance(state.inverse, tuple) else state.inverse @ residual
         # A relative tolerance given as the number 0 adds nothing: the iterate's norm
         # is then not computed (0 * norm still costs a reduction on XLA). A traced or
         # array rtol keeps the general form.
@@ -268,7 +269,9 @@ class PresetChord(optx.AbstractRootFinder):
         implicit function theorem."""
         fn_with_aux = lambda u, a: (fn(u, a), None)
         state = self.init(fn_with_aux, y0, args, dict(inverse=inverse, floor=floor), None, None, frozenset())
-        constants = (state.inverse, state.floor, state.correction_floor)
+        # The inverse enters the loop in blocks of rows small enough that the loop's
+        # operations run one after another (`nhjax._linalg.SEQUENTIAL_BYTES`).
+        constants = (row_blocks(state.inverse), state.floor, state.correction_floor)
 
         def terminate_and_result(y, state):
             terminate, result = self.terminate(fn_with_aux, y, args, dict(remainder=remainder), state, frozenset())

@@ -2,12 +2,16 @@
 its own loop (`PresetChord.solve`, what the methods use) and through
 `optimistix.root_find`, which must agree."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
 
+import nhjax as nh
+from nhjax._linalg import SEQUENTIAL_BYTES
 from nhjax._solver.chord import chord_inverse, ChordSolution, PresetChord, STALL_FACTOR
 
 
@@ -220,3 +224,93 @@ def test_chord_inverse_pivots_only_where_needed_also_within_a_batch():
     batch = jax.jit(jax.vmap(chord_inverse))(jnp.stack([dominant, needs_pivoting, dominant]))
     for a, inverse in zip((dominant, needs_pivoting, dominant), batch):
         np.testing.assert_allclose(inverse @ a, jnp.eye(3), atol=1e-15)
+
+
+def _computations(hlo: str) -> dict[str, list[str]]:
+    computations, current = {}, None
+    for line in hlo.splitlines():
+        header = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
+        if header and "(" in line:
+            current = computations.setdefault(header.group(1), [])
+        elif line.startswith("}"):
+            current = None
+        elif current is not None and " = " in line:
+            current.append(line)
+    return computations
+
+
+def _called(line: str) -> list[str]:
+    names = re.findall(r"(?:body|condition|true_computation|false_computation|to_apply)=%?([\w.\-]+)", line)
+    branches = re.search(r"branch_computations=\{([^}]*)\}", line)
+    return names + ([name.strip().lstrip("%") for name in branches.group(1).split(",")] if branches else [])
+
+
+_ITEM_BYTES = {"f64": 8, "f32": 4, "s64": 8, "s32": 4, "pred": 1}
+
+
+def _array_bytes(shape: str) -> int:
+    kind, dims = re.match(r"(\w+)\[([\d,]*)\]", shape).groups()
+    return int(np.prod([int(d) for d in dims.split(",") if d])) * _ITEM_BYTES[kind]
+
+
+_NOT_RUN = ("parameter", "get-tuple-element", "tuple", "constant", "bitcast", "while", "conditional", "call")
+
+
+def _largest_array(computations, name, seen=()) -> int:
+    """The largest array (bytes) an operation of computation `name` or of one it calls
+    (loop bodies, branches) reads or writes, as XLA:CPU counts it for its choice to run
+    them one after another (fused computations count by their operands and result)."""
+    shapes, largest = {}, 0
+    for line in computations.get(name, []):
+        match = re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = (\S+) ([\w\-]+)\((.*?)\)", line)
+        if not match:
+            continue
+        result, shape, op, operands = match.groups()
+        shapes[result] = shape
+        if op not in _NOT_RUN:
+            for s in [shape] + [shapes.get(o.strip().lstrip("%"), "") for o in operands.split(",")]:
+                if re.match(r"(f64|f32|s64|s32|pred)\[", s):  # not tuples
+                    largest = max(largest, _array_bytes(s))
+        if op in ("while", "conditional"):
+            for child in _called(line):
+                if child not in seen:
+                    largest = max(largest, _largest_array(computations, child, seen + (name,)))
+    return largest
+
+
+def _innermost_loops(computations) -> list[str]:
+    bodies = {child for lines in computations.values() for line in lines if " while(" in line
+              for child in re.findall(r"body=%?([\w.\-]+)", line)}
+
+    def has_loop(name, seen=()):
+        return any(
+            " while(" in line or any(has_loop(child, seen + (name,)) for child in _called(line) if child not in seen)
+            for line in computations.get(name, [])
+        )
+
+    return [body for body in bodies if not has_loop(body)]
+
+
+@pytest.mark.parametrize(
+    "case, method", [("disk", nh.GonzalezR()), ("gearbox", nh.EnergyPreservingCollocation(order=4))], ids=str
+)
+def test_chord_iterations_touch_only_arrays_xla_runs_in_sequence(case, method):
+    """XLA:CPU runs a loop body's operations one after another only where no array they
+    touch exceeds `SEQUENTIAL_BYTES` (otherwise on its thread pool, which costs more
+    than tiny operations): in the innermost loops of a run, the chord iterations, none
+    does. Euler's disk needs `solve_spd`'s batch of right-hand sides folded into
+    columns (three 5 x 6 eliminations batched are 720 bytes); the gearbox's collocation
+    of order 4, with 10 unknowns, its inverse read in `row_blocks`."""
+    if case == "disk":
+        disk = nh.examples.rolling_disk_3d()
+        y0 = disk.state(q=jnp.array([0.3, -0.2, 0.4, 0.25, 0.1]), turn_rate=0.6, lean_rate=-0.3, spin_rate=2.5)
+        system, args, h = disk.canonical, disk.args, 0.01
+    else:
+        gearbox = nh.examples.gearbox()
+        system, y0, args, h = gearbox.canonical, gearbox.random_initial_state(jax.random.key(0)), None, 0.1
+    run = jax.jit(lambda y: nh.integrate(system, method, y, h, 3, args=args))
+    computations = _computations(run.lower(y0).compile().as_text())
+    loops = _innermost_loops(computations)
+    assert loops
+    sizes = {loop: _largest_array(computations, loop) for loop in loops}
+    assert max(sizes.values()) <= SEQUENTIAL_BYTES, sizes
