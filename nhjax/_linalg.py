@@ -281,6 +281,16 @@ def matrix_product(a: Float[Array, "*b m k"], b: Float[Array, "*b k n"]) -> Floa
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
+def jacobian_by_columns(function: Callable[[Float[Array, " n"]], Float[Array, " m"]], x: Float[Array, " n"]) -> Float[Array, "m n"]:
+    """The Jacobian of `function` at `x`, one column at a time (`jax.lax.map` of its
+    linearisation over the unit vectors): the arrays are those of one tangent, where
+    `jax.jacfwd`'s are those of all n at once, small enough for XLA:CPU to run the
+    operations around them in sequence (`SEQUENTIAL_BYTES`), at the price of n
+    trips through a loop."""
+    linear = jax.linearize(function, x)[1]
+    return lax.map(linear, jnp.eye(x.shape[0], dtype=x.dtype)).T
+
+
 def row_blocks(matrix: Float[Array, "m n"]) -> tuple[Float[Array, "r n"], ...]:
     """`matrix` as consecutive blocks of rows of at most `SEQUENTIAL_BYTES` each, for a
     matrix read in a loop's body (`blocked_product`); the whole matrix as one block

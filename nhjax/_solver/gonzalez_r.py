@@ -43,6 +43,7 @@ import optimistix as optx
 from jaxtyping import Array
 
 from .._discrete_gradient import Branch, gonzalez_correction
+from .._linalg import jacobian_by_columns, SEQUENTIAL_BYTES
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, metric_is, metric_of, ReducedSystem
 from .chord import REMAINDER
@@ -54,6 +55,15 @@ from .base import AbstractSymmetricSecondOrderMethod, increment_scale, resolutio
 # synthetic systems of `benchmarks/scaling.py`, keeping it takes n = 64 (N = 112) 0.51
 # to 0.81 of the time from run to run, but n = 16 and 32 anything from 0.70 to 1.05.
 KEPT_ABOVE_UNKNOWNS = 64
+# Up to this many unknowns the exact chord matrix (formed only where it is kept, so at
+# few steps) may be formed a column at a time (`GonzalezR._columnwise`,
+# `jacobian_by_columns`): its arrays are then small enough that XLA:CPU runs the
+# step's operations in sequence (`nhjax._linalg.SEQUENTIAL_BYTES`), which pays at every
+# step. Measured in turns, per step: Euler's disk (N = 8, whose N tangents at once
+# through three products with M(q)^{-1} made 5 x 29 arrays) 0.56 of the time with its
+# mass matrix, 0.76 from its Lagrangian; the sleigh (N = 5), whose arrays were small
+# already, 1.16, so it keeps the tangents together.
+COLUMNWISE_UP_TO = 8
 
 
 class _Carry(NamedTuple):
@@ -358,12 +368,23 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         iterations they save from $n = 16$ on.
         The root does not depend on the matrix, and derivatives of the root do not use
         it (see `nhjax._solver.chord`). With `exact_chord_matrix`, that Jacobian by
-        `jax.jacfwd` instead."""
+        `jax.jacfwd` instead, or a column at a time for small systems whose metric's
+        derivatives along all tangents at once would be large arrays (`_columnwise`)."""
         if self.uses_exact_chord_matrix(data):
+            if self._columnwise(u, data):
+                return jacobian_by_columns(lambda v: self.simplified_residual(v, data), u)
             return super().chord_jacobian(u, data)
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args, frame_turn=True)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
+
+    @staticmethod
+    def _columnwise(u, data) -> bool:
+        """Whether the exact chord matrix is formed a column at a time: with few unknowns
+        (`COLUMNWISE_UP_TO`), where its $N$ tangents at once would carry $N$ copies of
+        an $n \times n$ metric's derivative past `SEQUENTIAL_BYTES`."""
+        n = (u.shape[0] + data.reduced.signs.shape[0]) // 2
+        return u.shape[0] <= COLUMNWISE_UP_TO and u.shape[0] * n * n * u.dtype.itemsize > SEQUENTIAL_BYTES
 
     def uses_exact_chord_matrix(self, data) -> bool:
         """`exact_chord_matrix`, or where it is `None`, whether the metric depends on
