@@ -143,7 +143,7 @@ def solve_spd(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "
 
 @jax.custom_batching.custom_vmap
 def _eliminate_spd_folded(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
-    """`_eliminate_spd`, which under `vmap` with only the right-hand side batched (one
+    r"""`_eliminate_spd`, which under `vmap` with only the right-hand side batched (one
     metric, several momenta: the velocities at $X\rho$ and at the rows of $A$ in
     `nhjax._reduced.momentum_by_projection`, a gradient and its tangents) eliminates
     once with the batch as more columns.
@@ -171,7 +171,7 @@ def _eliminate_spd_batched(axis_size, in_batched, a, b):
     if axis_size <= MEMBERS_UNROLLED and axis_size * member_bytes > SEQUENTIAL_BYTES >= a.nbytes:
         # A few members (the stages of a collocation step), each small enough to be
         # eliminated in sequence where the batch is not; only where the batch of
-        # matrices is small itself, or the body holds a large array anyway.
+        # matrices is small itself (otherwise the body holds a large array anyway).
         return jnp.stack([_eliminate_spd_folded(a[i], b[i]) for i in range(axis_size)]), True
     return jax.vmap(_eliminate_spd)(a, b), True
 
@@ -281,7 +281,9 @@ def matrix_product(a: Float[Array, "*b m k"], b: Float[Array, "*b k n"]) -> Floa
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
-def jacobian_by_columns(function: Callable[[Float[Array, " n"]], Float[Array, " m"]], x: Float[Array, " n"]) -> Float[Array, "m n"]:
+def jacobian_by_columns(
+    function: Callable[[Float[Array, " n"]], Float[Array, " m"]], x: Float[Array, " n"]
+) -> Float[Array, "m n"]:
     """The Jacobian of `function` at `x`, one column at a time (`jax.lax.map` of its
     linearisation over the unit vectors): the arrays are those of one tangent, where
     `jax.jacfwd`'s are those of all n at once, small enough for XLA:CPU to run the

@@ -162,7 +162,8 @@ class PresetChord(optx.AbstractRootFinder):
     def step(self, fn, y, args, options, state, tags):
         del options, tags
         residual, aux = fn(y, args)
-        diff = blocked_product(state.inverse, residual) if isinstance(state.inverse, tuple) else state.inverse @ residual
+        inverse = state.inverse
+        diff = blocked_product(inverse, residual) if isinstance(inverse, tuple) else inverse @ residual
         # A relative tolerance given as the number 0 adds nothing: the iterate's norm
         # is then not computed (0 * norm still costs a reduction on XLA). A traced or
         # array rtol keeps the general form.

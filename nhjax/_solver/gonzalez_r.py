@@ -380,7 +380,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
 
     @staticmethod
     def _columnwise(u, data) -> bool:
-        """Whether the exact chord matrix is formed a column at a time: with few unknowns
+        r"""Whether the exact chord matrix is formed a column at a time: with few unknowns
         (`COLUMNWISE_UP_TO`), where its $N$ tangents at once would carry $N$ copies of
         an $n \times n$ metric's derivative past `SEQUENTIAL_BYTES`."""
         n = (u.shape[0] + data.reduced.signs.shape[0]) // 2
