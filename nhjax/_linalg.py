@@ -79,8 +79,7 @@ def lapack_unbatched(routine: Callable[..., Any], fold: str | None = None) -> Ca
         if fold is not None and not in_batched[0]:
             a, b = operands
             if fold == "columns":
-                x = unbatched(a, jnp.moveaxis(b, 0, -1).reshape(b.shape[1], -1))
-                return jnp.moveaxis(x.reshape(*b.shape[1:], axis_size), -1, 0), True
+                return _batch_as_columns(unbatched, a, b), True
             return unbatched(a, b.reshape(-1, b.shape[-1])).reshape(b.shape), True
         members = tuple(
             x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))) for x, batched in zip(operands, in_batched)
@@ -89,6 +88,15 @@ def lapack_unbatched(routine: Callable[..., Any], fold: str | None = None) -> Ca
         return values, jax.tree.map(lambda _: True, values)
 
     return unbatched
+
+
+def _batch_as_columns(
+    solve: Callable[[Array, Array], Array], a: Float[Array, "n n"], b: Float[Array, "batch n *k"]
+) -> Array:
+    """`solve(a, member)` for every member of the batch `b` (its first axis), from one
+    call with the members as more columns of the right-hand side."""
+    columns = solve(a, jnp.moveaxis(b, 0, -1).reshape(b.shape[1], -1))
+    return jnp.moveaxis(columns.reshape(*b.shape[1:], b.shape[0]), -1, 0)
 
 
 _cholesky_solve = lapack_unbatched(lambda a, b: jsl.cho_solve(jsl.cho_factor(a), b), fold="columns")
@@ -164,8 +172,7 @@ def _eliminate_spd_folded(a: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Fl
 def _eliminate_spd_batched(axis_size, in_batched, a, b):
     a_batched, b_batched = in_batched
     if not a_batched:
-        columns = _eliminate_spd_folded(a, jnp.moveaxis(b, 0, -1).reshape(b.shape[1], -1))
-        return jnp.moveaxis(columns.reshape(*b.shape[1:], axis_size), -1, 0), True
+        return _batch_as_columns(_eliminate_spd_folded, a, b), True
     b = b if b_batched else jnp.broadcast_to(b, (axis_size, *b.shape))
     member_bytes = a.dtype.itemsize * a.shape[-1] * (a.shape[-1] + b[0].size // a.shape[-1])
     if axis_size <= MEMBERS_UNROLLED and axis_size * member_bytes > SEQUENTIAL_BYTES >= a.nbytes:

@@ -49,8 +49,9 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
 
 
 class _ChordState(eqx.Module):
-    # Inside `PresetChord.solve`'s loop, as `row_blocks`.
-    inverse: Float[Array, "n n"] | tuple[Float[Array, "r n"], ...]
+    # In blocks of rows (`row_blocks`) small enough that a loop's operations around
+    # them run one after another (`nhjax._linalg.SEQUENTIAL_BYTES`).
+    inverse: tuple[Float[Array, "r n"], ...]
     floor: Float[Array, " n"]
     correction_floor: Float[Array, " n"]
     # The sizes of the last correction and of the one before it, the ratio of the two
@@ -157,13 +158,14 @@ class PresetChord(optx.AbstractRootFinder):
         # What a residual at its floor moves the iterate by: corrections of that size
         # are rounding, not progress.
         correction_floor = jnp.abs(inverse) @ floor
-        return _ChordState(inverse, floor, correction_floor, jnp.full(4, jnp.inf, dtype=y.dtype), jnp.array(0))
+        return _ChordState(
+            row_blocks(inverse), floor, correction_floor, jnp.full(4, jnp.inf, dtype=y.dtype), jnp.array(0)
+        )
 
     def step(self, fn, y, args, options, state, tags):
         del options, tags
         residual, aux = fn(y, args)
-        inverse = state.inverse
-        diff = blocked_product(inverse, residual) if isinstance(inverse, tuple) else inverse @ residual
+        diff = blocked_product(state.inverse, residual)
         # A relative tolerance given as the number 0 adds nothing: the iterate's norm
         # is then not computed (0 * norm still costs a reduction on XLA). A traced or
         # array rtol keeps the general form.
@@ -270,9 +272,7 @@ class PresetChord(optx.AbstractRootFinder):
         implicit function theorem."""
         fn_with_aux = lambda u, a: (fn(u, a), None)
         state = self.init(fn_with_aux, y0, args, dict(inverse=inverse, floor=floor), None, None, frozenset())
-        # The inverse enters the loop in blocks of rows small enough that the loop's
-        # operations run one after another (`nhjax._linalg.SEQUENTIAL_BYTES`).
-        constants = (row_blocks(state.inverse), state.floor, state.correction_floor)
+        constants = (state.inverse, state.floor, state.correction_floor)
 
         def terminate_and_result(y, state):
             terminate, result = self.terminate(fn_with_aux, y, args, dict(remainder=remainder), state, frozenset())
