@@ -278,22 +278,19 @@ def _largest_array(computations, name, seen=()) -> int:
     return largest
 
 
-def _innermost_loops(computations) -> list[str]:
-    bodies = {child for lines in computations.values() for line in lines if " while(" in line
-              for child in re.findall(r"body=%?([\w.\-]+)", line)}
+def _loops(computations) -> list[str]:
+    return [child for lines in computations.values() for line in lines if " while(" in line
+            for child in re.findall(r"body=%?([\w.\-]+)", line)]
 
+
+def _innermost_loops(computations) -> list[str]:
     def has_loop(name, seen=()):
         return any(
             " while(" in line or any(has_loop(child, seen + (name,)) for child in _called(line) if child not in seen)
             for line in computations.get(name, [])
         )
 
-    return [body for body in bodies if not has_loop(body)]
-
-
-def _loops(computations) -> list[str]:
-    return [child for lines in computations.values() for line in lines if " while(" in line
-            for child in re.findall(r"body=%?([\w.\-]+)", line)]
+    return [body for body in set(_loops(computations)) if not has_loop(body)]
 
 
 @pytest.mark.parametrize(
