@@ -228,7 +228,7 @@ class ChordMemory(eqx.Module):
     steps it has served (`age`), and the chord matrices formed so far."""
 
     jacobian: PyTree[Array]
-    inverse: Float[Array, "u u"]
+    inverse: Float[Array, "u u"] | tuple[Float[Array, "r u"], ...]
     key: Float[Array, " c"]
     fresh_iterations: Int[Array, ""]
     last_iterations: Int[Array, ""]
@@ -394,19 +394,18 @@ class AbstractMethod(diffrax.AbstractSolver):
     def chord_jacobian(self, unknowns: Float[Array, " u"], data: Any) -> Float[Array, "u u"]:
         return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
-    def chord_matrix(self, unknowns: Float[Array, " u"], data: Any) -> tuple[PyTree[Array], Float[Array, "u u"]]:
+    def chord_matrix(
+        self, unknowns: Float[Array, " u"], data: Any
+    ) -> tuple[PyTree[Array], Float[Array, "u u"] | tuple[Float[Array, "r u"], ...]]:
         """The chord matrix at `unknowns` (`chord_jacobian`) and its inverse, by default
-        `nhjax._solver.chord.chord_inverse`. A method whose matrix has structure may
-        form and invert it by that structure, and return in its place what it forms it
-        from (its `chord_floor` reads that; a step fails as non-finite where any of it
-        is)."""
+        `nhjax._solver.chord.chord_inverse`. A method whose matrix has structure may form and
+        invert it by that structure, and return in its place what it forms it from (its
+        `chord_floor` reads that; a step fails as non-finite where any of it is), and
+        may return the inverse as blocks of rows (`nhjax._linalg.row_blocks`), formed
+        as they are, never the whole matrix
+        (`nhjax.EnergyPreservingCollocation.chord_matrix`)."""
         jacobian = self.chord_jacobian(unknowns, data)
         return jacobian, chord_inverse(jacobian)
-
-    def unformed_chord_matrix(self, size: int, dtype) -> PyTree[Array]:
-        """NaN in the form of `chord_matrix`'s matrix for `size` unknowns: what a
-        `ChordMemory` holds before the first matrix is formed."""
-        return jnp.full((size, size), jnp.nan, dtype)
 
     def chord_floor(self, matrix: PyTree[Array], data: Any) -> Float[Array, " u"] | None:
         """The rounding floor of the residual (`rounding_floor`) from the chord matrix as
@@ -476,16 +475,18 @@ class AbstractMethod(diffrax.AbstractSolver):
         chord_finder = isinstance(self._root_finder(jax.tree.leaves(y0)[0].dtype), PresetChord)
         if chord_finder and self.reuses_chord_matrix(system, state, args):
 
-            def unknowns_and_key():
+            def matrix_and_key():
                 guess, data = self.setup(system, t0, t1 - t0, state, args, carry)
-                return guess, self.chord_key(data)
+                return self.chord_matrix(guess, data), self.chord_key(data)
 
-            unknowns, key = jax.eval_shape(unknowns_and_key)
-            size, dtype = unknowns.shape[0], unknowns.dtype
+            # NaN in the form of a chord matrix and its inverse: nothing formed yet.
+            (jacobian, inverse), key = jax.tree.map(
+                lambda leaf: jnp.full(leaf.shape, jnp.nan, leaf.dtype), jax.eval_shape(matrix_and_key)
+            )
             chord = ChordMemory(
-                self.unformed_chord_matrix(size, dtype),
-                jnp.full((size, size), jnp.nan, dtype),
-                jnp.full(key.shape, jnp.nan, key.dtype),
+                jacobian,
+                inverse,
+                key,
                 zero,
                 zero,
                 zero,
@@ -612,7 +613,7 @@ class AbstractMethod(diffrax.AbstractSolver):
         if isinstance(root_finder, PresetChord):
             solution, jacobian, inverse, chord = self._chord_solve(root_finder, guess, fixed_data, solver_state.chord)
             evaluations_finite = jnp.all(jnp.isfinite(guess)) & all_finite(jacobian)
-            singular = ~jnp.all(jnp.isfinite(inverse))
+            singular = ~all_finite(inverse)
         else:
             found = optx.root_find(
                 self.residual, root_finder, guess, fixed_data, max_steps=self.root_find_max_steps, throw=False
@@ -671,7 +672,7 @@ class AbstractMethod(diffrax.AbstractSolver):
             jnp.all(jnp.abs(memory.key - key) <= CHORD_KEY_TOLERANCE * jnp.abs(key))
             & (memory.age < KEPT_STEPS)
             & (memory.last_iterations <= 2 * memory.fresh_iterations + 1)
-            & jnp.all(jnp.isfinite(memory.inverse))
+            & all_finite(memory.inverse)
         )
 
         def attempt(carry):

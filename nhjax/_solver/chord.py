@@ -94,7 +94,8 @@ class PresetChord(optx.AbstractRootFinder):
     r"""PresetChord iteration for a root of `fn(u, args)`, `u` a 1-D array.
 
     The inverse Jacobian approximation is `options["inverse"]` when the caller supplies
-    one (formed explicitly, `chord_inverse`: one matrix-vector product per
+    one, as a matrix or as its blocks of rows (`nhjax._linalg.row_blocks`, or blocks a
+    method forms as they are; formed explicitly, `chord_inverse`: one matrix-vector product per
     iteration instead of two triangular solves; the chord matrix is well conditioned,
     $I - O(h)$, and the inverse's rounding changes the contraction rate, not the root);
     otherwise the inverse of
@@ -156,11 +157,14 @@ class PresetChord(optx.AbstractRootFinder):
         floor = options.get("floor")
         floor = jnp.zeros_like(y) if floor is None else lax.stop_gradient(jnp.broadcast_to(floor, y.shape))
         # What a residual at its floor moves the iterate by: corrections of that size
-        # are rounding, not progress.
-        correction_floor = jnp.abs(inverse) @ floor
-        return _ChordState(
-            row_blocks(inverse), floor, correction_floor, jnp.full(4, jnp.inf, dtype=y.dtype), jnp.array(0)
-        )
+        # are rounding, not progress. Of a whole matrix in one product: its blocks of
+        # rows are slices, each an operation of its own.
+        if isinstance(inverse, tuple):
+            blocks = inverse
+            correction_floor = blocked_product(tuple(jnp.abs(block) for block in blocks), floor)
+        else:
+            blocks, correction_floor = row_blocks(inverse), jnp.abs(inverse) @ floor
+        return _ChordState(blocks, floor, correction_floor, jnp.full(4, jnp.inf, dtype=y.dtype), jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
         del options, tags
@@ -236,13 +240,14 @@ class PresetChord(optx.AbstractRootFinder):
         fn,
         y0: Float[Array, " n"],
         args,
-        inverse: Float[Array, "n n"],
+        inverse: Float[Array, "n n"] | tuple[Float[Array, "r n"], ...],
         max_steps: int,
         floor: Float[Array, " n"] | None = None,
         remainder: float | None = None,
     ) -> ChordSolution:
         """The iteration for a root of `fn(u, args)` (no auxiliary output) from `y0`
-        with the inverse Jacobian approximation `inverse`: the iterates, codes and
+        with the inverse Jacobian approximation `inverse` (a matrix or its blocks of
+        rows): the iterates, codes and
         counts of `optimistix.root_find(fn, self, y0, args, options=dict(inverse=...),
         max_steps=max_steps, throw=False)`, including
         `optimistix.RESULTS.nonlinear_max_steps_reached` and `nonfinite` for a

@@ -11,7 +11,7 @@ import optimistix as optx
 from jaxtyping import Array
 
 from .._discrete_gradient import Branch, value_difference
-from .._linalg import matrix_product, PRODUCT_LIMIT
+from .._linalg import matrix_product, PRODUCT_LIMIT, SEQUENTIAL_BYTES
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
@@ -373,7 +373,15 @@ class EnergyPreservingCollocation(AbstractMethod):
         complex one, and with the $sN \times sN$ matrix never assembled the steps of
         orders 8 to 12 are a tenth to a fifth cheaper than with complex blocks and the
         assembled matrix (`benchmarks/composition.py`). At order 2 ($s = 1$) the matrix
-        is inverted as it is. Cut from differentiation, as the chord matrix is."""
+        is inverted as it is. Cut from differentiation, as the chord matrix is.
+
+        Where the inverted blocks are small together (`SEQUENTIAL_BYTES`: in float64 up to
+        $N = 5$ at orders 4 to 8), the inverse is returned in blocks of rows
+        (`nhjax._linalg.row_blocks`), each formed from the rows of the $N \times N$
+        parts, so that no array of the step is large: XLA:CPU then runs
+        the step's operations in sequence, not on its thread pool, which for such tiny
+        operations costs more than their arithmetic (the gearbox, $N = 5$, in
+        `benchmarks/composition.py`)."""
         scaled = lax.stop_gradient(self._scaled_field_jacobian(u, data))
         h = lax.stop_gradient(data.h)
         if self.stages == 1:
@@ -387,6 +395,11 @@ class EnergyPreservingCollocation(AbstractMethod):
             identity - 2 * h * real * scaled + h * h * modulus * matrix_product(scaled, scaled)
         )
         turned = matrix_product(scaled[None], products)
+        if products.nbytes <= SEQUENTIAL_BYTES:
+            # The blocks formed from the parts' rows: no array of the step is large.
+            parts = [products[k] - h * real[k] * turned[k] for k in range(len(eigenvalues))]
+            parts += [h * imaginary[k] * turned[k] for k in range(len(eigenvalues))]
+            return scaled, self._row_blocks_from_parts(parts, weights)
         parts = jnp.concatenate([products - h * real * turned, h * imaginary * turned])
         stages, size = self.stages, scaled.shape[0]
         inverse = (
@@ -394,9 +407,27 @@ class EnergyPreservingCollocation(AbstractMethod):
         ).reshape(stages, stages, size, size)
         return scaled, inverse.transpose(0, 2, 1, 3).reshape(u.shape[0], u.shape[0])
 
-    def unformed_chord_matrix(self, size, dtype):
-        r"""NaN in the form of `chord_matrix`'s: an $N \times N$ matrix."""
-        return jnp.full((size // self.stages, size // self.stages), jnp.nan, dtype)
+    def _row_blocks_from_parts(self, parts, weights) -> tuple[Array, ...]:
+        r"""The inverse $\sum_k W_k \otimes P_k$ (`weights` $W$, `parts` $P_k$, each
+        $N \times N$) in blocks of rows of at most `SEQUENTIAL_BYTES`, each formed from
+        the parts' rows, within one stage's rows."""
+        size, itemsize = parts[0].shape[0], parts[0].dtype.itemsize
+        per_block = max(1, SEQUENTIAL_BYTES // (self.stages * size * itemsize))
+        blocks = []
+        for i in range(self.stages):
+            for start in range(0, size, per_block):
+                rows = slice(start, min(start + per_block, size))
+                blocks.append(jnp.concatenate(
+                    [
+                        sum(
+                            (float(weights[i, j, k]) * part[rows] for k, part in enumerate(parts) if weights[i, j, k]),
+                            jnp.zeros_like(parts[0][rows]),
+                        )
+                        for j in range(self.stages)
+                    ],
+                    axis=1,
+                ))
+        return tuple(blocks)
 
     def chord_floor(self, scaled, data):
         r"""`nhjax._solver.base.rounding_floor` of the chord matrix

@@ -145,22 +145,22 @@ def test_a_failing_kept_matrix_is_replaced_by_a_fresh_one():
     one = jnp.array(1, jnp.int32)
     # A matrix for this step size that cannot move the iterate: the root find fails
     # with it (too many iterations) and is done again with a fresh one.
-    useless = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps, one, one)
+    useless = ChordMemory(jacobian, jax.tree.map(jnp.zeros_like, inverse), key, fresh.steps, fresh.steps, one, one)
     solution, _, used, memory = kept._chord_solve(root_finder, guess, data, useless)
     assert solution.result == fresh.result
     # Formed in a branch of its own, so rounded apart from the fresh one above.
     np.testing.assert_allclose(solution.value, fresh.value, rtol=0, atol=1e-15)
-    np.testing.assert_allclose(used, inverse, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(jnp.vstack(used), jnp.vstack(inverse), rtol=0, atol=1e-15)
     assert int(solution.steps) == kept.root_find_max_steps + int(fresh.steps)
     assert int(memory.formed) == 2 and int(memory.fresh_iterations) == int(fresh.steps)
     # A matching key, but the last step needed more than one iteration more than
     # twice the matrix's first, or the matrix has served `KEPT_STEPS` steps: formed
     # afresh before the root find.
-    slow = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, 2 * fresh.steps + 2, one, one)
-    old = ChordMemory(jacobian, jnp.zeros_like(inverse), key, fresh.steps, fresh.steps, one * KEPT_STEPS, one)
+    slow = ChordMemory(jacobian, jax.tree.map(jnp.zeros_like, inverse), key, fresh.steps, 2 * fresh.steps + 2, one, one)
+    old = ChordMemory(jacobian, jax.tree.map(jnp.zeros_like, inverse), key, fresh.steps, fresh.steps, one * KEPT_STEPS, one)
     for memory in (slow, old):
         solution, _, used, memory = kept._chord_solve(root_finder, guess, data, memory)
-        np.testing.assert_allclose(used, inverse, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(jnp.vstack(used), jnp.vstack(inverse), rtol=0, atol=1e-15)
         assert int(solution.steps) == int(fresh.steps) and int(memory.formed) == 2 and int(memory.age) == 1
     # One that serves is used as it is, also for a step size that differs by rounding.
     for rounded in (key, key * (1 + 4e-16)):
