@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
-from .._linalg import blocked_product, inverse, is_diagonally_dominant, row_blocks, UNROLL_LIMIT
+from .._linalg import blocked_product, inverse, is_diagonally_dominant, product, row_blocks, UNROLL_LIMIT
 from .._rare_branch import rarely
 
 
@@ -54,6 +54,8 @@ class _ChordState(eqx.Module):
     inverse: tuple[Float[Array, "r n"], ...]
     floor: Float[Array, " n"]
     correction_floor: Float[Array, " n"]
+    # How many of its units a stalled correction may take (`terminate`).
+    stall_allowance: Float[Array, ""]
     # The sizes of the last correction and of the one before it, the ratio of the two
     # before the last, and the size of the last residual, in one array: it is formed
     # anew at each iteration, where separate scalars moved from one slot of the loop's
@@ -113,11 +115,23 @@ class PresetChord(optx.AbstractRootFinder):
     `atol` of the tolerance. The iterates then circle the root (the corrections flip
     sign without shrinking) and the plain test may never pass, or pass only on some
     rounding paths. So an iteration is also accepted once, from the second correction
-    on, the correction and the residual are both below `STALL_FACTOR * atol` and the
-    correction is no longer halving: the root is then known to a few tolerances, which
-    is all the rounding allows. (With a contraction rate $c$, a slowly converging
-    iteration accepted this way is within `STALL_FACTOR` $c/(1 - c)$ tolerances of its
-    root; for the nhjax methods $c = O(h^3)$, see the module docstring.)
+    on, the correction and the residual are both below `STALL_FACTOR` of their units
+    (those of the test below) and the correction is no longer halving: the root is then
+    known to a few tolerances, which is all the rounding allows. (With a contraction
+    rate $c$, a slowly converging iteration accepted this way is within `STALL_FACTOR`
+    $c/(1 - c)$ tolerances of its root; for the nhjax methods $c = O(h^3)$, see the
+    module docstring.) Where the chord matrix is ill-conditioned the rounding of the
+    residual comes back amplified in the correction, which then stalls at many of its
+    units while the residual stalls at a few: GONZALEZ-F on a tractor pulling 61
+    trailers, whose constraint rows stall at 2 to 4 tolerances and whose chord matrix,
+    of condition 740, turns them into corrections of 10 to 20. So the correction's
+    bound is `STALL_FACTOR` times the largest factor, over the components, by which
+    $|\tilde J^{-1}|$ turns a residual at its units into a correction beyond the
+    correction's units ($\max_i\,(|\tilde J^{-1}|(\text{atol} + \text{floor}))_i
+    / (\text{atol} + |\tilde J^{-1}|\,\text{floor})_i$, at least 1; $1 + O(h)$ for a
+    chord matrix $I - O(h)$). It is the residual's bound that bounds the error:
+    $|u - u^*| \lesssim |\tilde J^{-1}|\,|F(u)|$, within `STALL_FACTOR` such
+    corrections, component by component.
 
     **A floor the caller knows.** Where the residual's rounding is known to exceed
     `atol` in some components, `options["floor"]` (a vector, default zero) gives its
@@ -157,14 +171,24 @@ class PresetChord(optx.AbstractRootFinder):
         floor = options.get("floor")
         floor = jnp.zeros_like(y) if floor is None else lax.stop_gradient(jnp.broadcast_to(floor, y.shape))
         # What a residual at its floor moves the iterate by: corrections of that size
-        # are rounding, not progress. Of a whole matrix in one product: its blocks of
-        # rows are slices, each an operation of its own.
+        # are rounding, not progress; and what one at its tolerance and floor moves it
+        # by, against the correction's units, for the stall test. Of a whole matrix in
+        # one product: its blocks of rows are slices, each an operation of its own.
+        def moved(block):
+            magnitude = jnp.abs(block)
+            return product(magnitude, floor), jnp.sum(magnitude, axis=1)
+
         if isinstance(inverse, tuple):
             blocks = inverse
-            correction_floor = blocked_product(tuple(jnp.abs(block) for block in blocks), floor)
+            correction_floor, row_sums = (jnp.concatenate(parts) for parts in zip(*map(moved, blocks)))
         else:
-            blocks, correction_floor = row_blocks(inverse), jnp.abs(inverse) @ floor
-        return _ChordState(blocks, floor, correction_floor, jnp.full(4, jnp.inf, dtype=y.dtype), jnp.array(0))
+            blocks, (correction_floor, row_sums) = row_blocks(inverse), moved(inverse)
+        stall_allowance = jnp.maximum(
+            1.0, jnp.max((self.atol * row_sums + correction_floor) / (self.atol + correction_floor))
+        )
+        return _ChordState(
+            blocks, floor, correction_floor, stall_allowance, jnp.full(4, jnp.inf, dtype=y.dtype), jnp.array(0)
+        )
 
     def step(self, fn, y, args, options, state, tags):
         del options, tags
@@ -186,6 +210,7 @@ class PresetChord(optx.AbstractRootFinder):
             state.inverse,
             state.floor,
             state.correction_floor,
+            state.stall_allowance,
             jnp.stack([
                 jnp.where(finite, diff_size, jnp.nan),
                 state.diff_size,
@@ -216,7 +241,7 @@ class PresetChord(optx.AbstractRootFinder):
             converged = converged & (state.steps >= 2) & left
         stalled = (
             (state.steps >= 2)
-            & (state.diff_size < STALL_FACTOR)
+            & (state.diff_size < STALL_FACTOR * state.stall_allowance)
             & (state.residual_size < STALL_FACTOR)
             & (state.diff_size > 0.5 * state.previous_diff_size)
         )
@@ -277,7 +302,7 @@ class PresetChord(optx.AbstractRootFinder):
         implicit function theorem."""
         fn_with_aux = lambda u, a: (fn(u, a), None)
         state = self.init(fn_with_aux, y0, args, dict(inverse=inverse, floor=floor), None, None, frozenset())
-        constants = (state.inverse, state.floor, state.correction_floor)
+        constants = (state.inverse, state.floor, state.correction_floor, state.stall_allowance)
 
         def terminate_and_result(y, state):
             terminate, result = self.terminate(fn_with_aux, y, args, dict(remainder=remainder), state, frozenset())
@@ -290,10 +315,10 @@ class PresetChord(optx.AbstractRootFinder):
         def body(carry):
             y, state, _, _ = carry
             new_y, new_state, _ = self.step(fn_with_aux, y, args, None, _with_constants(state, constants), frozenset())
-            new_state = _with_constants(new_state, (None, None, None))
-            return (new_y, new_state) + terminate_and_result(y, new_state)
+            ended = terminate_and_result(y, new_state)
+            return (new_y, _with_constants(new_state, (None, None, None, None))) + ended
 
-        init = (y0, _with_constants(state, (None, None, None))) + terminate_and_result(y0, state)
+        init = (y0, _with_constants(state, (None, None, None, None))) + terminate_and_result(y0, state)
         if self.fixed_trip:
             # Every one of these iterations runs; those after the end keep the carry.
             def masked_body(_, carry):
@@ -308,7 +333,11 @@ class PresetChord(optx.AbstractRootFinder):
 
 
 def _with_constants(state: _ChordState, constants) -> _ChordState:
-    """`state` with its constants (the inverse and the floors) replaced."""
+    """`state` with its constants (the inverse, the floors and the stall allowance)
+    replaced."""
     return eqx.tree_at(
-        lambda s: (s.inverse, s.floor, s.correction_floor), state, constants, is_leaf=lambda x: x is None
+        lambda s: (s.inverse, s.floor, s.correction_floor, s.stall_allowance),
+        state,
+        constants,
+        is_leaf=lambda x: x is None,
     )

@@ -62,6 +62,29 @@ def test_stall_at_the_rounding_floor_is_accepted_within_the_floor(route):
     np.testing.assert_allclose(solution.value, ROOT, rtol=0, atol=amplitude * (1 + 1e-6))
 
 
+def test_a_stall_is_read_through_the_inverse_where_it_amplifies_the_rounding(route):
+    """An ill-conditioned chord matrix (an inverse with a row of absolute sum 101)
+    turns a residual at 1.5 tolerances into corrections of about 300 tolerances: the
+    iterates circle the root in a 4-cycle, the residual at 3 tolerances. The stall is
+    accepted (in units of what a residual at its tolerance moves the iterate by), and
+    the iterate is within STALL_FACTOR of those units of the root, component by
+    component."""
+    jacobian = jnp.array([[1.0, 100.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    amplitude = 1.5 * ATOL
+    inverse = jnp.linalg.inv(jacobian)
+
+    def residual(u, args):
+        return jacobian @ (u - ROOT) + amplitude * jnp.where(u > ROOT, 1.0, -1.0)
+
+    solution = _solve(residual, inverse, route=route)
+    assert solution.result == optx.RESULTS.successful
+    assert int(solution.steps) <= 6
+    error = jnp.abs(solution.value - ROOT)
+    moved = jnp.abs(inverse) @ jnp.full(3, ATOL)
+    assert float(error[0]) > 50 * ATOL  # a stall, far from the plain test
+    assert bool(jnp.all(error <= STALL_FACTOR * moved))
+
+
 def test_a_floor_far_above_the_tolerance_still_fails(route):
     solution = _solve(_floor_residual(STALL_FACTOR * ATOL), jnp.eye(3), route=route)
     assert solution.result != optx.RESULTS.successful
