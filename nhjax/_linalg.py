@@ -300,6 +300,12 @@ def jacobian_by_columns(
     return lax.map(linear, jnp.eye(x.shape[0], dtype=x.dtype)).T
 
 
+def rows_per_block(columns: int, dtype) -> int:
+    """The most rows of `columns` entries of `dtype` within `SEQUENTIAL_BYTES` (at least
+    one): the height of a `row_blocks` block."""
+    return max(1, SEQUENTIAL_BYTES // (columns * jnp.dtype(dtype).itemsize))
+
+
 def row_blocks(matrix: Float[Array, "m n"]) -> tuple[Float[Array, "r n"], ...]:
     """`matrix` as consecutive blocks of rows of at most `SEQUENTIAL_BYTES` each, for a
     matrix read in a loop's body (`blocked_product`); the whole matrix as one block
@@ -307,7 +313,7 @@ def row_blocks(matrix: Float[Array, "m n"]) -> tuple[Float[Array, "r n"], ...]:
     `ROW_BLOCK_LIMIT` blocks (then its rows are long enough that the body's other
     arrays are large too)."""
     rows, columns = matrix.shape
-    per_block = max(1, SEQUENTIAL_BYTES // (columns * matrix.dtype.itemsize))
+    per_block = rows_per_block(columns, matrix.dtype)
     if per_block >= rows or -(-rows // per_block) > ROW_BLOCK_LIMIT:
         return (matrix,)
     return tuple(matrix[start : start + per_block] for start in range(0, rows, per_block))

@@ -11,7 +11,7 @@ import optimistix as optx
 from jaxtyping import Array
 
 from .._discrete_gradient import Branch, value_difference
-from .._linalg import matrix_product, PRODUCT_LIMIT, SEQUENTIAL_BYTES
+from .._linalg import matrix_product, PRODUCT_LIMIT, rows_per_block, SEQUENTIAL_BYTES
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
@@ -411,8 +411,8 @@ class EnergyPreservingCollocation(AbstractMethod):
         r"""The inverse $\sum_k W_k \otimes P_k$ (`weights` $W$, `parts` $P_k$, each
         $N \times N$) in blocks of rows of at most `SEQUENTIAL_BYTES`, each formed from
         the parts' rows, within one stage's rows."""
-        size, itemsize = parts[0].shape[0], parts[0].dtype.itemsize
-        per_block = max(1, SEQUENTIAL_BYTES // (self.stages * size * itemsize))
+        size = parts[0].shape[0]
+        per_block = rows_per_block(self.stages * size, parts[0].dtype)
         blocks = []
         for i in range(self.stages):
             for start in range(0, size, per_block):
