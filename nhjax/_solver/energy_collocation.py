@@ -1,6 +1,7 @@
 r"""Energy-preserving collocation of order $2s$ for $\dot x = \Pi(x)\nabla H(x)$, on a
 `SkewGradientSystem` and on the reduced form of a `NonholonomicSystem` (§3.3)."""
 
+import functools
 from typing import Any, ClassVar, NamedTuple
 
 import jax
@@ -8,6 +9,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from numpy.polynomial import polynomial
 from jaxtyping import Array
 
 from .._discrete_gradient import Branch, value_difference
@@ -16,24 +18,33 @@ from .._nonholonomic import NonholonomicSystem
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
 from ._collocation_tableau import collocation_tableau, CollocationTableau
-from .base import AbstractMethod, floor_of_rounding, increment_scale, resolution_of, step_key
+from .base import AbstractMethod, CHORD_KEY_TOLERANCE, floor_of_rounding, increment_scale, resolution_of, step_key
 from .chord import chord_inverse, REMAINDER
 
 
 # Up to six stages: the Gauss matrix's eigenvector basis, through which the chord
 # matrix is inverted, has condition 600 at s = 6 and 2 200 at s = 7.
 ORDERS = (2, 4, 6, 8, 10, 12)
+# The steps whose displacements the history predictor reads (`_history_weights`). On
+# the gearbox and the quartic at the step size where order 4 reaches 1e-8 (h = 0.02),
+# its error is 2e-5 and 6e-6 of the extrapolation's with 6, 2.5e-4 and 1.1e-4 with 5.
+HISTORY = 6
+# The history predictor is taken where it and the extrapolation agree to this fraction.
+AGREEMENT = 1e-2
 
 
 class _Carry(NamedTuple):
     """What a step hands the next: its end in the coordinates it integrates ($x'$, or
     $\\zeta'$ on the reduced form, with the frame's signs), its increments $Z_j$ and its
-    signed size, for the predictor (NaN until there are any)."""
+    signed size, for the predictors (NaN until there are any), and the displacements
+    $x_{k+1} - x_k$ of the last `HISTORY` steps of that size, newest first (NaN where
+    there are fewer; see `EnergyPreservingCollocation`)."""
 
     end: Array
     signs: Array
     increments: Array
     step: Array
+    displacements: Array
 
 
 class _StepData(NamedTuple):
@@ -47,6 +58,8 @@ class _StepData(NamedTuple):
     energy: Array
     momentum: Array | None
     t: Any
+    # The carry's displacements; after a restart or a change of step size, none.
+    displacements: Array
 
 
 class _Point(NamedTuple):
@@ -74,6 +87,21 @@ def _stage_field(form, t, x, point: _Point, gradient, args):
     if not form.is_forced():
         return field, None
     return field + form.applied_force(t, x, args, gradient), form.power_along(t, x, gradient, args)
+
+
+@functools.cache
+def _history_weights(nodes: tuple) -> np.ndarray:
+    r"""$w_{ij} = L_j'(c_i)$, $L_j$ the Lagrange polynomials of the step ends
+    $0, -1, \dots, -(m - 1)$ ($m$ = `HISTORY`, in units of the step): the history
+    predictor's $Z_i \approx Z_i^{\text{prev}} + \sum_jw_{ij}\delta_j$ (see
+    `EnergyPreservingCollocation`)."""
+    ends = -np.arange(HISTORY, dtype=float)
+    weights = np.zeros((len(nodes), HISTORY))
+    for j in range(HISTORY):
+        others = np.delete(ends, j)
+        basis = polynomial.polyfromroots(others) / np.prod(ends[j] - others)
+        weights[:, j] = polynomial.polyval(np.asarray(nodes), polynomial.polyder(basis))
+    return weights
 
 
 class EnergyPreservingCollocation(AbstractMethod):
@@ -130,11 +158,34 @@ class EnergyPreservingCollocation(AbstractMethod):
     ($S = 1 + |x_0|$) by the chord iteration with the simplified-Newton matrix
     $I - h\,(a \otimes F)$ of the Gauss method, $F$ the field's derivative at the
     predicted midpoint (on the reduced form with the frame held fixed,
-    `ReducedSystem.field_jacobian`). The predictor extrapolates the last step's
-    collocation polynomial, $K_i \approx \sum_j\ell_j(1 + c_ih/h_{\text{prev}})K_j^{\text{prev}}$,
-    $O(h^s)$ from the root; no motion where there is no such step (the first step, a
-    restart, a change of the frame's signs, a step size more than four times the last),
-    from which the iteration's first iterate is a linearly implicit step.
+    `ReducedSystem.field_jacobian`).
+
+    **Predictors.** The last step's collocation polynomial extrapolated,
+    $K_i \approx \sum_j\ell_j(1 + c_ih/h_{\text{prev}})K_j^{\text{prev}}$, is
+    $O(h^s)$ from the root, relative to the increments. Once the last $m$ =
+    `HISTORY` steps had this step's size, the step starts instead from the last
+    step's increments moved on as the step ends say the trajectory moves:
+
+    $$Z_i \approx Z_i^{\text{prev}} + \sum_{j=0}^{m-1}L_j'(c_i)\,\delta_j,$$
+
+    $\delta_j = x_{k-j} - x_{k-j-1}$ the displacement of the $(j+1)$-th last step and
+    $L_j$ the Lagrange polynomials of the nodes $0, -1, \dots, -(m-1)$: the sum is the
+    derivative (times $h$) at $t_k + c_ih$ of the polynomial through the last $m$ step
+    ends, less that of the same polynomial one step back at $t_{k-1} + c_ih$. The step
+    ends lie on a smooth curve (the flow and the smooth global error), and so does the
+    stage increments' departure from it, which the last step's increments carry
+    forward. Its error is $O(h^m)$ (fitted 6.0 to 6.1 on the gearbox at orders 4 and
+    6, 5.1 to 5.5 on the quartic at order 4; on the gearbox at order 4 and
+    $h = 0.02$, $8 \cdot 10^{-9}$ of the increments against $4 \cdot 10^{-4}$ for the
+    extrapolation): a chord iteration fewer per step at the step sizes at which order 4
+    reaches $10^{-8}$ (`benchmarks/composition.py`). Where a step is long against the
+    motion, a polynomial through $m$ step ends extrapolates wildly (the quartic at
+    order 12 and $h = 0.7$: errors 7 times the increments, against 0.7 for the
+    extrapolation), so it is taken only where the two predictions agree to
+    `AGREEMENT` (1%) of the increments: there both are close, and the history is the
+    closer. No motion where there is no last step (the first step, a restart, a
+    change of the frame's signs, a step size more than four times the last), from
+    which the iteration's first iterate is a linearly implicit step.
 
     **Arguments:**
 
@@ -240,7 +291,8 @@ class EnergyPreservingCollocation(AbstractMethod):
         form = self._form(system, y0, args, signs)
         start = form.to_reduced(y0, args) if isinstance(form, ReducedSystem) else y0
         unknown = jnp.full((self.stages, start.shape[0]), jnp.nan, dtype=start.dtype)
-        return _Carry(start, signs, unknown, jnp.full((), jnp.nan, dtype=start.dtype))
+        no_history = jnp.full((HISTORY, start.shape[0]), jnp.nan, dtype=start.dtype)
+        return _Carry(start, signs, unknown, jnp.full((), jnp.nan, dtype=start.dtype), no_history)
 
     def setup(self, system, t, h, y0, args, carry):
         signs = self._signs(system, y0, args)
@@ -269,10 +321,18 @@ class EnergyPreservingCollocation(AbstractMethod):
         # it is a linearly implicit Runge--Kutta step, which costs about what an
         # explicit Euler guess would (as for GONZALEZ-R), its field evaluations the
         # iteration's own residual, not a copy of the field in the step's program.
-        increments = jnp.where(extrapolates, extrapolated, 0.0)
+        # The history holds displacements of steps of this size since the last restart.
+        same_size = continues & (jnp.abs(h - carry.step) <= CHORD_KEY_TOLERANCE * jnp.abs(h))
+        displacements = jnp.where(same_size, carry.displacements, jnp.nan)
+        from_history = carry.increments + jnp.asarray(_history_weights(tuple(tableau.c)), dtype=x.dtype) @ displacements
+        # Where the two agree, both are close and the history is the closer; where they
+        # do not, the step is long against the motion, and the history is the worse.
+        agree = jnp.max(jnp.abs(from_history - extrapolated)) <= AGREEMENT * jnp.max(jnp.abs(extrapolated))
+        uses_history = extrapolates & agree
+        increments = jnp.where(uses_history, from_history, jnp.where(extrapolates, extrapolated, 0.0))
         scale = increment_scale(x)
         guess = (lax.stop_gradient(increments) / scale).reshape(-1)
-        return guess, _StepData(form, x, h, scale, args, energy, momentum, t)
+        return guess, _StepData(form, x, h, scale, args, energy, momentum, t, displacements)
 
     def residual(self, u, data, branch: Branch = "cond"):
         return self._equations(u, data, branch)[0]
@@ -476,10 +536,12 @@ class EnergyPreservingCollocation(AbstractMethod):
         x1 = x + jnp.asarray(tableau.b, dtype=x.dtype) @ increments
         y1 = form.from_reduced(x1, args) if isinstance(form, ReducedSystem) else x1
         signs = form.signs if isinstance(form, ReducedSystem) else jnp.zeros((0,), dtype=x.dtype)
+        increments = lax.stop_gradient(increments)
         return y1, _Carry(
             end=x1,
             signs=signs,
-            increments=lax.stop_gradient(increments),
+            increments=increments,
             step=lax.stop_gradient(jnp.asarray(data.h, dtype=x.dtype)),
+            displacements=jnp.concatenate([lax.stop_gradient(x1 - x)[None], data.displacements[:-1]]),
         )
 

@@ -8,6 +8,7 @@ the Gauss method's published coefficients; and its refusals."""
 import math
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +17,7 @@ import pytest
 import nhjax as nh
 from nhjax._linalg import SEQUENTIAL_BYTES
 from nhjax._solver._collocation_tableau import collocation_tableau
+from nhjax._solver.energy_collocation import HISTORY
 from nhjax._solver.base import rounding_floor
 
 from ..helpers import check_float32, check_per_trajectory_result_codes, fitted_order
@@ -171,6 +173,54 @@ def test_the_chord_matrix_comes_with_its_inverse_and_its_rounding_floor(order):
         np.testing.assert_allclose(
             method.chord_floor(derivative, data), rounding_floor(jacobian, *method.resolution(data)), rtol=1e-14
         )
+
+
+@eqx.filter_jit
+def _guess_error_and_step(method, system, h, t0, y, state):
+    """The error of a step's guess, relative to the increments it solves for, and the
+    step."""
+    guess, data = method.setup(system, t0, h, y, None, state.carry)
+    y, _, _, state, result = method.step(system, t0, t0 + h, y, None, state, False)
+    increments = state.carry.increments
+    error = jnp.max(jnp.abs(data.scale * guess.reshape(increments.shape) - increments))
+    return error / jnp.max(jnp.abs(increments)), y, state, result
+
+
+def _guess_errors(method, system, y0, step_sizes):
+    """The guesses' relative errors over consecutive steps of the given sizes."""
+    state, y, t, errors = method.init(system, 0.0, step_sizes[0], y0, None), y0, 0.0, []
+    for h in step_sizes:
+        error, y, state, result = _guess_error_and_step(method, system, jnp.asarray(h), jnp.asarray(t), y, state)
+        assert result == diffrax.RESULTS.successful
+        errors.append(float(error))
+        t += h
+    return errors
+
+
+def test_the_guess_is_of_order_history_once_that_many_steps_of_one_size_are_known():
+    """On the gearbox at order 4 the guess is O(h^s) = O(h^2) from the root (the last
+    polynomial extrapolated) until HISTORY steps of the step's size are known, then
+    O(h^HISTORY) (the step ends' history); after a change of step size it is the
+    extrapolation's again; and where the step is long against the motion (the quartic
+    at order 12, h = 0.7) the extrapolation's (a history that extrapolates wildly
+    would be several times the increments off)."""
+    gearbox = nh.examples.gearbox()
+    method = nh.EnergyPreservingCollocation(4)
+    y0 = gearbox.random_initial_state(jax.random.key(0))
+    sizes = (0.08, 0.04, 0.02)
+    errors = np.array([_guess_errors(method, gearbox.canonical, y0, [h] * (HISTORY + 3)) for h in sizes])
+    early, late = errors[:, HISTORY - 1], errors[:, HISTORY + 2]
+    assert 1.7 <= fitted_order(sizes, early) <= 2.3, early
+    assert fitted_order(sizes, late) >= HISTORY - 0.5, late
+    assert late[-1] <= 1e-4 * early[-1], (early, late)
+    # A change by 0.5%, which the two predictions would not tell apart.
+    changed = _guess_errors(method, gearbox.canonical, y0, [0.02] * (HISTORY + 3) + [0.0199] * (HISTORY + 3))
+    assert changed[HISTORY + 2] <= 1e-7 and 1e-5 <= changed[HISTORY + 3] <= 1e-3, changed
+    assert changed[-1] <= 1e-7, changed
+    quartic = nh.examples.chaotic_quartic(3)
+    y0 = quartic.from_adapted(quartic.initial_state(0.7))
+    long = _guess_errors(nh.EnergyPreservingCollocation(12), quartic.canonical, y0, [10 / 14] * (HISTORY + 4))
+    assert max(long[HISTORY + 1:]) <= 1.5, long
 
 
 def test_float32_and_per_trajectory_codes():
