@@ -212,6 +212,39 @@ CHORD_KEY_TOLERANCE = 1e-6
 KEPT_STEPS = 16
 
 
+# How many step displacements the predictors of GONZALEZ-R and of EP-collocation keep
+# (`displacements_for_step`): on the gearbox at h = 0.05, GONZALEZ-R's guess from the
+# last six is 2e3 times closer than the one from the last two, on Euler's disk at
+# h = 0.01 8e4 times.
+HISTORY = 6
+# A prediction from the history is taken where it agrees with the one from the last
+# step or two to this fraction of its size (`agrees`).
+AGREEMENT = 1e-2
+
+
+def displacements_for_step(continues, h, last_step, displacements: Float[Array, "m n"]) -> Float[Array, "m n"]:
+    r"""The displacements $x_{k-j} - x_{k-j-1}$ of the last `HISTORY` steps, newest
+    first, that a step of size `h` may read: those carried, where the step continues
+    the last one and has its size (to `CHORD_KEY_TOLERANCE`: sizes from accumulated
+    times differ by rounding), NaN otherwise; a step size changed, they describe
+    another sequence of points and the history starts again."""
+    same_size = continues & (jnp.abs(h - last_step) <= CHORD_KEY_TOLERANCE * jnp.abs(h))
+    return jnp.where(same_size, displacements, jnp.nan)
+
+
+def with_displacement(displacements: Float[Array, "m n"], newest: Float[Array, " n"]) -> Float[Array, "m n"]:
+    """The history after a step of displacement `newest` (no derivatives)."""
+    return jnp.concatenate([lax.stop_gradient(newest)[None], displacements[:-1]])
+
+
+def agrees(prediction: Array, reference: Array) -> Array:
+    """Whether a prediction from the step history is within `AGREEMENT` of the one from
+    the last steps (max norm), which it is where the steps are short against the
+    motion and both are close, and is not where a polynomial through `HISTORY` step
+    ends extrapolates wildly. False where either is NaN."""
+    return jnp.max(jnp.abs(prediction - reference)) <= AGREEMENT * jnp.max(jnp.abs(reference))
+
+
 def step_key(h, dtype=None, signs: Float[Array, " k"] | None = None) -> Float[Array, " c"]:
     """A `chord_key`: the step size `h` (as `dtype`), and the frame's `signs` where the
     matrix was formed in a frame."""

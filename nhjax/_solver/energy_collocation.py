@@ -18,19 +18,23 @@ from .._nonholonomic import NonholonomicSystem
 from .._reduced import metric_of, ReducedSystem
 from .._system import AbstractSystem, SkewGradientSystem
 from ._collocation_tableau import collocation_tableau, CollocationTableau
-from .base import AbstractMethod, CHORD_KEY_TOLERANCE, floor_of_rounding, increment_scale, resolution_of, step_key
+from .base import (
+    AbstractMethod,
+    agrees,
+    displacements_for_step,
+    floor_of_rounding,
+    HISTORY,
+    increment_scale,
+    resolution_of,
+    step_key,
+    with_displacement,
+)
 from .chord import chord_inverse, REMAINDER
 
 
 # Up to six stages: the Gauss matrix's eigenvector basis, through which the chord
 # matrix is inverted, has condition 600 at s = 6 and 2 200 at s = 7.
 ORDERS = (2, 4, 6, 8, 10, 12)
-# The steps whose displacements the history predictor reads (`_history_weights`). On
-# the gearbox and the quartic at the step size where order 4 reaches 1e-8 (h = 0.02),
-# its error is 2e-5 and 6e-6 of the extrapolation's with 6, 2.5e-4 and 1.1e-4 with 5.
-HISTORY = 6
-# The history predictor is taken where it and the extrapolation agree to this fraction.
-AGREEMENT = 1e-2
 
 
 class _Carry(NamedTuple):
@@ -321,14 +325,9 @@ class EnergyPreservingCollocation(AbstractMethod):
         # it is a linearly implicit Runge--Kutta step, which costs about what an
         # explicit Euler guess would (as for GONZALEZ-R), its field evaluations the
         # iteration's own residual, not a copy of the field in the step's program.
-        # The history holds displacements of steps of this size since the last restart.
-        same_size = continues & (jnp.abs(h - carry.step) <= CHORD_KEY_TOLERANCE * jnp.abs(h))
-        displacements = jnp.where(same_size, carry.displacements, jnp.nan)
+        displacements = displacements_for_step(continues, h, carry.step, carry.displacements)
         from_history = carry.increments + jnp.asarray(_history_weights(tuple(tableau.c)), dtype=x.dtype) @ displacements
-        # Where the two agree, both are close and the history is the closer; where they
-        # do not, the step is long against the motion, and the history is the worse.
-        agree = jnp.max(jnp.abs(from_history - extrapolated)) <= AGREEMENT * jnp.max(jnp.abs(extrapolated))
-        uses_history = extrapolates & agree
+        uses_history = extrapolates & agrees(from_history, extrapolated)
         increments = jnp.where(uses_history, from_history, jnp.where(extrapolates, extrapolated, 0.0))
         scale = increment_scale(x)
         guess = (lax.stop_gradient(increments) / scale).reshape(-1)
@@ -542,6 +541,6 @@ class EnergyPreservingCollocation(AbstractMethod):
             signs=signs,
             increments=increments,
             step=lax.stop_gradient(jnp.asarray(data.h, dtype=x.dtype)),
-            displacements=jnp.concatenate([lax.stop_gradient(x1 - x)[None], data.displacements[:-1]]),
+            displacements=with_displacement(data.displacements, x1 - x),
         )
 
