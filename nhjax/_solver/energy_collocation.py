@@ -9,8 +9,8 @@ import jax.lax as lax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from numpy.polynomial import polynomial
 from jaxtyping import Array
+from numpy.polynomial import polynomial
 
 from .._discrete_gradient import Branch, value_difference
 from .._linalg import matrix_product, PRODUCT_LIMIT, rows_per_block, SEQUENTIAL_BYTES
@@ -535,11 +535,10 @@ class EnergyPreservingCollocation(AbstractMethod):
         x1 = x + jnp.asarray(tableau.b, dtype=x.dtype) @ increments
         y1 = form.from_reduced(x1, args) if isinstance(form, ReducedSystem) else x1
         signs = form.signs if isinstance(form, ReducedSystem) else jnp.zeros((0,), dtype=x.dtype)
-        increments = lax.stop_gradient(increments)
         return y1, _Carry(
             end=x1,
             signs=signs,
-            increments=increments,
+            increments=lax.stop_gradient(increments),
             step=lax.stop_gradient(jnp.asarray(data.h, dtype=x.dtype)),
             displacements=with_displacement(data.displacements, x1 - x),
         )

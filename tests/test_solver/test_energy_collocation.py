@@ -17,8 +17,7 @@ import pytest
 import nhjax as nh
 from nhjax._linalg import SEQUENTIAL_BYTES
 from nhjax._solver._collocation_tableau import collocation_tableau
-from nhjax._solver.base import HISTORY
-from nhjax._solver.base import rounding_floor
+from nhjax._solver.base import HISTORY, rounding_floor
 
 from ..helpers import check_float32, check_per_trajectory_result_codes, fitted_order
 
