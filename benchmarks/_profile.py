@@ -63,3 +63,56 @@ def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int
         parts["setup"] + parts["chord_matrix"] + iterations * parts["residual"] + parts["complete"]
     )
     return parts
+
+
+def derivative_parts(system, method, y0, dt, steps: int, repeats: int, loss_of, args=None) -> dict:
+    """Where the time of a run's reverse-mode derivative goes (`nhjax._replay`), µs per
+    step, timed in turns in one process: the forward run (`forward`), the recording
+    scan that keeps each step's root (`record`), the replay of the steps from those
+    roots without derivatives (`replay`) and with reverse mode through it
+    (`replay_reverse`), which is what the derivative adds to the recording; and, per
+    call inside a compiled loop at the first step's root, the step's residual
+    (`residual`), its Jacobian in the unknowns by `jax.jacfwd` (`jacobian`), and the
+    first step replayed from its root with one tangent of the start
+    (`step_derivative`: the linearisation at the root that the derivative forms at
+    every step, its Jacobian in the unknowns and along the step's data,
+    `nhjax._solver.base._linearised`). `loss_of` maps the saved states to the scalar
+    that is differentiated."""
+    import nhjax as nh
+    from nhjax import _replay
+
+    from _timing import run_and_time_interleaved
+
+    dt = jnp.asarray(dt)
+    t0 = jnp.zeros_like(dt)
+
+    def forward(y):
+        return loss_of(nh.integrate(system, method, y, dt, steps, args=args, save_every=steps).ys)
+
+    def record(y):
+        return _replay._record(system, method, y, dt, t0, args, steps, steps)[:2]
+
+    roots, succeeded = jax.jit(record)(y0)
+
+    def replay(y):
+        ys, _ = _replay._replayed_saves(system, method, y, dt, t0, args, roots, succeeded, steps, save_every=steps)
+        return loss_of(ys)
+
+    functions = dict(forward=jax.jit(forward), record=jax.jit(record), replay=jax.jit(replay),
+                     replay_reverse=jax.jit(jax.grad(replay)))
+    _, times = run_and_time_interleaved(functions, y0, repeats=repeats)
+    parts = {name: seconds / steps * 1e6 for name, seconds in times.items()}
+
+    carry = method.initial_carry(system, y0, args)
+    _, data = method.setup(system, t0, dt, y0, args, carry)
+    ones = jax.tree.map(jnp.ones_like, y0)
+
+    def step_derivative(root):
+        return jax.jvp(lambda y: method.replay_step(system, t0, dt, y, args, carry, root)[0], (y0,), (ones,))[1]
+
+    parts.update(
+        residual=per_call_us(lambda u: method.residual(u, data), roots[0]),
+        jacobian=per_call_us(lambda u: jax.jacfwd(method.residual)(u, data), roots[0]),
+        step_derivative=per_call_us(step_derivative, roots[0]),
+    )
+    return parts

@@ -24,7 +24,11 @@ and, of the same lowered program after the memory figures, with its loop emitter
 (`loop_emitter_compile_s`; the README says how to choose it); the program's size is
 `hlo_lines`, lines of its optimised HLO.
 
-Run: python benchmarks/gradients.py [--steps N ...] [--repeats R] [--systems NAME ...]
+With `--parts`, on those systems also where the reverse-mode derivative's time goes
+(`_profile.derivative_parts`: the recording, the replay with and without
+derivatives, and a step's residual, Jacobian and linearisation), µs per step.
+
+Run: python benchmarks/gradients.py [--steps N ...] [--repeats R] [--systems NAME ...] [--parts]
 Medians over repeats; results go to benchmarks/results/gradients.json.
 """
 
@@ -79,6 +83,27 @@ _SYSTEMS = ("gearbox", "sleigh", "disk", "disk-lagrangian", "robot")
 _DEFAULT_MODES = ("forward", "reverse", "forward-mode")
 
 
+def final_state_loss(states):
+    """The differentiated scalar: a smooth function of the last saved (q, p)."""
+    import jax.numpy as jnp
+
+    q, p = states
+    return jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
+
+
+def parts(system_name: str, steps: int, repeats: int) -> dict:
+    """In this process: where the reverse-mode derivative's time goes
+    (`_profile.derivative_parts`)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import nhjax as nh
+    from _profile import derivative_parts
+
+    system, y0, dt, args = _system(system_name)
+    return derivative_parts(system, nh.GonzalezR(), y0, dt, steps, repeats, final_state_loss, args=args)
+
+
 def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
     """In this process: compile and time the forward run or its gradient."""
     import diffrax
@@ -102,8 +127,7 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
 
     def loss(y0):
         solution = nh.integrate(system, nh.GonzalezR(), y0, dt, steps, args=args, save_every=steps, adjoint=adjoint)
-        q, p = solution.ys
-        loss = jnp.sum(q[-1] ** 2) + jnp.sum(jnp.cos(p[-1]))
+        loss = final_state_loss(solution.ys)
         if system.is_forced():  # the energy ledger's derivatives too
             loss = loss + solution.work[-1] - solution.dissipated[-1]
         return loss
@@ -142,9 +166,13 @@ def main():
     parser.add_argument("--steps", type=int, nargs="+", default=[2_000, 100_000])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--systems", nargs="+", choices=_SYSTEMS, default=["gearbox"])
-    parser.add_argument("--child", choices=_MODES)
+    parser.add_argument("--child", choices=_MODES + ("parts",))
+    parser.add_argument("--parts", action="store_true", help="also where the derivative's time goes, per system")
     parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gradients.json"))
     options = parser.parse_args()
+    if options.child == "parts":
+        print(json.dumps(parts(options.systems[0], options.steps[0], options.repeats)))
+        return
     if options.child:
         print(json.dumps(measure(options.systems[0], options.child, options.steps[0], options.repeats)))
         return
@@ -167,6 +195,9 @@ def main():
                 results["dt"] = 0.1
                 results["runs"][str(steps)] = run
             else:
+                if options.parts:
+                    run["parts_us_per_step"] = _in_subprocess(system, "parts", steps, options.repeats)
+                    print(f"{system}, {steps} steps, parts: {run['parts_us_per_step']}", flush=True)
                 entry = results["systems"].setdefault(system, {})
                 entry[str(steps)] = run
                 entry["jax"], entry["machine"] = jax.__version__, machine()
