@@ -1,6 +1,6 @@
 """Keeping the chord matrix from step to step (`reuse_chord_matrix=True`) against forming
-it at every step, for GONZALEZ-R and the energy-preserving collocation, timed in turns
-in one process (`_timing.run_and_time_interleaved`).
+it at every step, for GONZALEZ-R, GONZALEZ-F and the energy-preserving collocation,
+timed in turns in one process (`_timing.run_and_time_interleaved`).
 
 Cases: the paper's gearbox, n = 3 quartic and sleigh (GONZALEZ-R, h = 0.1), Euler's disk
 with H from its mass matrix and from its Lagrangian (h = 0.01), the disk's mass-matrix form
@@ -10,7 +10,10 @@ as a batch of 32 trajectories under `jax.vmap` (momenta scaled by 1 to 1.01: und
 `scaling.py` at n = 16, 32 and 64 and a tractor pulling 5 trailers (h = 0.05: n = 8,
 k = 6, a metric that depends on q); the collocation of order 4, 6 and 8 on the
 quartic and of order 6 and 8 on the gearbox, at the step sizes where
-`composition.py` finds them cheapest. For each: µs/step (median) both ways and their
+`composition.py` finds them cheapest; GONZALEZ-F on the gearbox, the n = 3 quartic, the
+contact oscillator (M = I), the sleigh and the 2D rolling disk (h = 0.1), Euler's disk
+(h = 0.01) and tractors pulling 5, 13 and 29 trailers (n = 8, 16 and 32, h = 0.05).
+For each: µs/step (median) both ways and their
 ratio, iterations per step both ways, chord matrices formed per step when kept, and the
 largest difference of the final states and of the energy errors. GONZALEZ-R's chord
 matrix is the one with the frame held either way (`exact_chord_matrix=False`), so that
@@ -25,8 +28,10 @@ seconds (`_timing.CompileTimes`) and lines of HLO, since the exact matrix and th
 one's conditional make a larger program. The default there is the exact matrix, kept.
 
 Results: benchmarks/results/chord_reuse.json.
-Run: python benchmarks/chord_reuse.py [--repeats 7] [--choices-only]
-(`--choices-only`: the matrix choices alone, the other cases keeping their last results)
+Run: python benchmarks/chord_reuse.py [--repeats 7] [--choices-only] [--only TEXT]
+(`--choices-only`: the matrix choices alone, the other cases keeping their last results;
+`--only TEXT`: the cases whose name contains TEXT alone, the others and the matrix
+choices keeping theirs)
 """
 
 import json
@@ -50,6 +55,10 @@ def _gonzalez_r(keep):
     """GONZALEZ-R with its chord matrix kept or formed at every step, the frame held
     either way."""
     return nh.GonzalezR(reuse_chord_matrix=keep, exact_chord_matrix=False)
+
+
+def _gonzalez_f(keep):
+    return nh.GonzalezF(reuse_chord_matrix=keep)
 
 
 def _cases():
@@ -81,6 +90,21 @@ def _cases():
         cases[f"GONZALEZ-R, synthetic n = {n}"] = (
             scaling.SYSTEM, scaling.initial_state(n), None, _gonzalez_r,
             scaling.H, steps,
+        )
+    oscillator, disk_2d = nh.examples.contact_oscillator(), nh.examples.rolling_disk()
+    for name, problem in {
+        **paper,
+        "contact oscillator": (oscillator.canonical, oscillator.start("canonical"), oscillator.args),
+        "2D rolling disk": (disk_2d.canonical, disk_2d.start("canonical"), disk_2d.args),
+    }.items():
+        cases[f"GONZALEZ-F, {name}"] = (*problem, _gonzalez_f, 0.1, 1000)
+    cases["GONZALEZ-F, Euler's disk (mass-matrix H)"] = (
+        disk.canonical, disk.initial_state(), disk.args, _gonzalez_f, 0.01, 500
+    )
+    for count, steps in ((5, 200), (13, 100), (29, 40)):
+        train = nh.examples.tractor_trailers(count)
+        cases[f"GONZALEZ-F, tractor pulling {count} trailers"] = (
+            train.canonical, train.initial_state(), train.args, _gonzalez_f, scaling.H, steps
         )
     for name, orders in (("quartic n = 3", ((4, 200), (6, 100), (8, 40))), ("gearbox", ((6, 50), (8, 32)))):
         for order, steps in orders:
@@ -182,13 +206,17 @@ def _matrix_choices(repeats):
 
 
 def main():
-    arguments = options(__doc__, "chord_reuse", repeats=7, choices_only=False)
+    arguments = options(__doc__, "chord_reuse", repeats=7, choices_only=False, only="")
     path = pathlib.Path(arguments.out)
-    if arguments.choices_only:
+    if arguments.choices_only or arguments.only:
         results = json.loads(path.read_text()) if path.exists() else {}
+        results.setdefault("cases", {})
     else:
         results = dict(cases={}, repeats=arguments.repeats)
+    if not arguments.choices_only:
         for name, (system, y0, args, method_of, h, steps) in _cases().items():
+            if arguments.only not in name:
+                continue
             row = results["cases"][name] = _measure(system, y0, args, method_of, h, steps, arguments.repeats)
             print(
                 f"{name:42s} fresh {row['fresh_us_per_step']:8.1f} µs/step  kept {row['kept_us_per_step']:8.1f}"
@@ -196,7 +224,8 @@ def main():
                 f" {row['kept_iterations_per_step']:.2f}  matrices/step {row['kept_matrices_per_step']:.2f}",
                 flush=True,
             )
-    results["matrix_choices"] = _matrix_choices(arguments.repeats)
+    if not arguments.only:
+        results["matrix_choices"] = _matrix_choices(arguments.repeats)
     write(results, arguments.out)
 
 

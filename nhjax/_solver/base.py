@@ -212,6 +212,21 @@ CHORD_KEY_TOLERANCE = 1e-6
 KEPT_STEPS = 16
 
 
+# Above this many unknowns a fresh chord matrix (N tangents of the field, an N x N
+# inverse) costs several iterations even where the metric is constant, and the methods
+# that offer `reuse_chord_matrix` keep it by default: with the synthetic systems of
+# `benchmarks/scaling.py`, keeping GONZALEZ-R's takes n = 64 (N = 112) 0.51 to 0.81 of
+# the time from run to run, but n = 16 and 32 anything from 0.70 to 1.05.
+KEPT_ABOVE_UNKNOWNS = 64
+
+
+def check_optional_bool(owner: str, name: str, value) -> None:
+    """A `ValueError` naming `owner`'s option `name` unless `value` is `None`, `True` or
+    `False` (a choice that `None` leaves to the method)."""
+    if not (value is None or isinstance(value, bool)):
+        raise ValueError(f"{owner}: {name} must be None, True or False, got {value!r}.")
+
+
 # How many step displacements the predictors of GONZALEZ-R and of EP-collocation keep
 # (`displacements_for_step`): on the gearbox at h = 0.05, GONZALEZ-R's guess from the
 # last six is 2e3 times closer than the one from the last two, on Euler's disk at

@@ -9,7 +9,15 @@ import optimistix as optx
 
 from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient
 from .._nonholonomic import NonholonomicSystem
-from .base import AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit, resolution_of
+from .._reduced import metric_is, metric_of
+from .base import (
+    AbstractSymmetricSecondOrderMethod,
+    check_optional_bool,
+    increment_scale,
+    KEPT_ABOVE_UNKNOWNS,
+    positive_unit,
+    resolution_of,
+)
 
 
 class _StepData(NamedTuple):
@@ -54,7 +62,21 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
     root finder's tolerance), from the explicit Euler predictor of the index-1
     equations.
 
-    **Arguments:** `root_finder`, `root_find_max_steps` as for `nhjax.DiscreteGradient`.
+    **Arguments:**
+
+    - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
+    - `reuse_chord_matrix`: start each step from the last step's chord matrix while
+        it serves (`nhjax.AbstractMethod.reuses_chord_matrix`). `None` (default):
+        kept where forming it costs several iterations, as for `nhjax.GonzalezR`:
+        where the metric depends on $q$ (each of the matrix's $2n + k$ columns is
+        then a second derivative of $H$ through $M(q)^{-1}$) or where the unknowns
+        are more than `KEPT_ABOVE_UNKNOWNS`; a kept matrix needs about twice the
+        iterations. Measured both ways by `benchmarks/chord_reuse.py`: kept, a
+        tractor pulling 5, 13 and 29 trailers takes 0.84, 0.52 and 0.33 of the
+        time, Euler's disk 0.76, the sleigh 0.86; with a constant metric the
+        quartic with $n = 3$ 0.81, but the gearbox 1.25, the contact oscillator
+        1.17 and the 2D rolling disk 1.05, whose steps take two iterations with a
+        fresh matrix. `True` or `False` to choose.
     """
 
     term_structure: ClassVar = NonholonomicSystem
@@ -70,6 +92,21 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
 
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
+    reuse_chord_matrix: bool | None = None
+
+    def __check_init__(self):
+        check_optional_bool("GonzalezF", "reuse_chord_matrix", self.reuse_chord_matrix)
+
+    def reuses_chord_matrix(self, system: NonholonomicSystem, y0, args) -> bool:
+        """`reuse_chord_matrix`, or where it is `None`, whether the metric depends on
+        $q$ or there are more than `KEPT_ABOVE_UNKNOWNS` unknowns (see the class
+        docstring)."""
+        if self.reuse_chord_matrix is not None:
+            return self.reuse_chord_matrix
+        q, _ = y0
+        rows = jax.eval_shape(system.constraints, q, args).shape[0]
+        on_position = metric_is(metric_of(system, y0, args), "position")
+        return on_position or 2 * q.shape[0] + rows > KEPT_ABOVE_UNKNOWNS
 
     def composition_obstacle(self) -> str:
         """Symmetric, yet composition does not raise its order: the constraint holds at

@@ -51,20 +51,17 @@ from .chord import REMAINDER
 from .base import (
     AbstractSymmetricSecondOrderMethod,
     agrees,
+    check_optional_bool,
     displacements_for_step,
     HISTORY,
     increment_scale,
+    KEPT_ABOVE_UNKNOWNS,
     resolution_of,
     step_key,
     with_displacement,
 )
 
 
-# Above this many unknowns a fresh chord matrix (N tangents of the field, an N x N
-# inverse) costs several iterations even where the metric is constant: with the
-# synthetic systems of `benchmarks/scaling.py`, keeping it takes n = 64 (N = 112) 0.51
-# to 0.81 of the time from run to run, but n = 16 and 32 anything from 0.70 to 1.05.
-KEPT_ABOVE_UNKNOWNS = 64
 # Up to this many unknowns the exact chord matrix (formed only where it is kept, so at
 # few steps) may be formed a column at a time (`GonzalezR._columnwise`,
 # `jacobian_by_columns`): its arrays are then small enough that XLA:CPU runs the
@@ -226,14 +223,8 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
 
     def __check_init__(self):
         check_derivative(self.derivative)
-        if not (self.reuse_chord_matrix is None or isinstance(self.reuse_chord_matrix, bool)):
-            raise ValueError(
-                f"GonzalezR: reuse_chord_matrix must be None, True or False, got {self.reuse_chord_matrix!r}."
-            )
-        if not (self.exact_chord_matrix is None or isinstance(self.exact_chord_matrix, bool)):
-            raise ValueError(
-                f"GonzalezR: exact_chord_matrix must be None, True or False, got {self.exact_chord_matrix!r}."
-            )
+        check_optional_bool("GonzalezR", "reuse_chord_matrix", self.reuse_chord_matrix)
+        check_optional_bool("GonzalezR", "exact_chord_matrix", self.exact_chord_matrix)
 
     def _reduced(self, system, signs, h, y0, args):
         step = None

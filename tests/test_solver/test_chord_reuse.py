@@ -15,12 +15,20 @@ from ..helpers import canonical_starts, relative_energy_error
 
 
 STARTS = canonical_starts()
-# (label, fresh, kept): a q-dependent metric for GONZALEZ-R, and the collocation.
+# (label, fresh, kept): a q-dependent metric for GONZALEZ-R and GONZALEZ-F, and the
+# collocation.
 CASES = {
     "GONZALEZ-R, sleigh": (
         "sleigh, q-dependent M",
         nh.GonzalezR(reuse_chord_matrix=False),
         nh.GonzalezR(reuse_chord_matrix=True),
+        0.1,
+        200,
+    ),
+    "GONZALEZ-F, sleigh": (
+        "sleigh, q-dependent M",
+        nh.GonzalezF(reuse_chord_matrix=False),
+        nh.GonzalezF(reuse_chord_matrix=True),
         0.1,
         200,
     ),
@@ -51,7 +59,8 @@ def test_a_kept_matrix_changes_the_iterations_not_the_run(case):
     assert 1 <= formed <= steps // 2
     assert _distance(run.ys, reference.ys) <= 1e-12
     assert relative_energy_error(run) <= 1e-13
-    assert float(jnp.max(jnp.abs(run.constraint))) <= 1e-14
+    if kept.keeps_constraint():
+        assert float(jnp.max(jnp.abs(run.constraint))) <= 1e-14
 
 
 def test_gonzalez_r_keeps_its_matrix_where_forming_it_is_dear():
@@ -66,19 +75,42 @@ def test_gonzalez_r_keeps_its_matrix_where_forming_it_is_dear():
     assert nh.GonzalezR(reuse_chord_matrix=True).reuses_chord_matrix(gearbox.canonical, start, gearbox.args)
     assert not nh.GonzalezR(reuse_chord_matrix=False).reuses_chord_matrix(sleigh.canonical, y0, sleigh.args)
 
-    def unit_metric_system(n):
-        # M = I and n / 4 rows: 2n - n/4 unknowns.
-        def constraints(q, args):
-            del args
-            return jnp.eye(n, dtype=q.dtype)[: n // 4] * jnp.cos(q)
-
-        return nh.NonholonomicSystem(lambda q, p, args: 0.5 * p @ p + jnp.sum(jnp.cos(q)), constraints)
-
-    for n, kept in ((36, False), (40, True)):  # 63 and 70 unknowns
+    for n, kept in ((36, False), (40, True)):  # 2n - n/4: 63 and 70 unknowns
         q = jnp.linspace(0.1, 0.5, n)
-        assert nh.GonzalezR().reuses_chord_matrix(unit_metric_system(n), (q, jnp.zeros(n)), None) == kept
+        assert nh.GonzalezR().reuses_chord_matrix(_unit_metric_system(n), (q, jnp.zeros(n)), None) == kept
     with pytest.raises(ValueError, match="reuse_chord_matrix"):
         nh.GonzalezR(reuse_chord_matrix="yes")
+
+
+def _unit_metric_system(n):
+    """M = I and n / 4 constraint rows."""
+
+    def constraints(q, args):
+        del args
+        return jnp.eye(n, dtype=q.dtype)[: n // 4] * jnp.cos(q)
+
+    return nh.NonholonomicSystem(lambda q, p, args: 0.5 * p @ p + jnp.sum(jnp.cos(q)), constraints)
+
+
+def test_gonzalez_f_keeps_its_matrix_where_forming_it_is_dear():
+    """By default GONZALEZ-F keeps its chord matrix where the metric depends on q or
+    there are more than `KEPT_ABOVE_UNKNOWNS` unknowns (2n + k), as GONZALEZ-R does;
+    `True` and `False` choose."""
+    starts = {label: STARTS[label] for label in ("gearbox, M = I", "sleigh, q-dependent M", "disk, k = 2")}
+    kept = {label: nh.GonzalezF().reuses_chord_matrix(ex.canonical, y0, ex.args) for label, (ex, y0) in starts.items()}
+    # The disk's metric is a constant other than I.
+    assert kept == {"gearbox, M = I": False, "sleigh, q-dependent M": True, "disk, k = 2": False}
+    gearbox, start = starts["gearbox, M = I"]
+    assert nh.GonzalezF(reuse_chord_matrix=True).reuses_chord_matrix(gearbox.canonical, start, gearbox.args)
+    sleigh, y0 = starts["sleigh, q-dependent M"]
+    assert not nh.GonzalezF(reuse_chord_matrix=False).reuses_chord_matrix(sleigh.canonical, y0, sleigh.args)
+    run = nh.integrate(sleigh.canonical, nh.GonzalezF(), y0, 0.1, 20, args=sleigh.args)
+    assert 1 <= int(run.stats["chord_matrices"]) < 20
+    for n, kept in ((28, False), (32, True)):  # 63 and 72 unknowns
+        q = jnp.linspace(0.1, 0.5, n)
+        assert nh.GonzalezF().reuses_chord_matrix(_unit_metric_system(n), (q, jnp.zeros(n)), None) == kept
+    with pytest.raises(ValueError, match="GonzalezF: reuse_chord_matrix"):
+        nh.GonzalezF(reuse_chord_matrix=1)
 
 
 def test_a_batch_keeps_each_trajectory_s_own_matrix():
