@@ -18,20 +18,12 @@ STARTS = canonical_starts()
 # (label, fresh, kept): a q-dependent metric for GONZALEZ-R and GONZALEZ-F, and the
 # collocation.
 CASES = {
-    "GONZALEZ-R, sleigh": (
-        "sleigh, q-dependent M",
-        nh.GonzalezR(reuse_chord_matrix=False),
-        nh.GonzalezR(reuse_chord_matrix=True),
-        0.1,
-        200,
-    ),
-    "GONZALEZ-F, sleigh": (
-        "sleigh, q-dependent M",
-        nh.GonzalezF(reuse_chord_matrix=False),
-        nh.GonzalezF(reuse_chord_matrix=True),
-        0.1,
-        200,
-    ),
+    f"{name}, sleigh": (
+        "sleigh, q-dependent M", method(reuse_chord_matrix=False), method(reuse_chord_matrix=True), 0.1, 200
+    )
+    for name, method in (("GONZALEZ-R", nh.GonzalezR), ("GONZALEZ-F", nh.GonzalezF))
+}
+CASES |= {
     "collocation 4, quartic": (
         "quartic, n = 7",
         nh.EnergyPreservingCollocation(4),
