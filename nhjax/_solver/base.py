@@ -7,6 +7,7 @@ travels in the solver state as an `nhjax.RESULTS` code naming its cause
 (`step_failure`), while the step reports `diffrax.RESULTS.breakdown`;
 `nhjax.integrate` reports the nhjax code."""
 
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import diffrax
@@ -20,6 +21,7 @@ from jaxtyping import Array, Float, Int, PyTree, Scalar
 
 from .._ledger import Ledgered, unledgered
 from .._linalg import solve
+from .._reduced import metric_is, metric_of
 from .._rare_branch import rarely
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
@@ -218,6 +220,17 @@ KEPT_STEPS = 16
 # `benchmarks/scaling.py`, keeping GONZALEZ-R's takes n = 64 (N = 112) 0.51 to 0.81 of
 # the time from run to run, but n = 16 and 32 anything from 0.70 to 1.05.
 KEPT_ABOVE_UNKNOWNS = 64
+
+
+def chord_matrix_is_dear(system, y0, args, unknowns: Callable[[int, int], int]) -> bool:
+    r"""Whether forming a chord matrix costs several iterations, so that the methods
+    offering `reuse_chord_matrix` keep it by default: where the metric of the
+    `NonholonomicSystem` depends on $q$ (every column of the matrix then differentiates
+    $M(q)^{-1}$), or where the step has more than `KEPT_ABOVE_UNKNOWNS` unknowns,
+    `unknowns(n, k)` for $n$ coordinates and $k$ constraint rows."""
+    q, _ = y0
+    rows = jax.eval_shape(system.constraints, q, args).shape[0]
+    return metric_is(metric_of(system, y0, args), "position") or unknowns(q.shape[0], rows) > KEPT_ABOVE_UNKNOWNS
 
 
 def check_optional_bool(owner: str, name: str, value) -> None:

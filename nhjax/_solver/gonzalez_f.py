@@ -9,12 +9,11 @@ import optimistix as optx
 
 from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient
 from .._nonholonomic import NonholonomicSystem
-from .._reduced import metric_is, metric_of
 from .base import (
     AbstractSymmetricSecondOrderMethod,
     check_optional_bool,
+    chord_matrix_is_dear,
     increment_scale,
-    KEPT_ABOVE_UNKNOWNS,
     positive_unit,
     resolution_of,
 )
@@ -103,10 +102,7 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
         docstring)."""
         if self.reuse_chord_matrix is not None:
             return self.reuse_chord_matrix
-        q, _ = y0
-        rows = jax.eval_shape(system.constraints, q, args).shape[0]
-        on_position = metric_is(metric_of(system, y0, args), "position")
-        return on_position or 2 * q.shape[0] + rows > KEPT_ABOVE_UNKNOWNS
+        return chord_matrix_is_dear(system, y0, args, lambda n, k: 2 * n + k)
 
     def composition_obstacle(self) -> str:
         """Symmetric, yet composition does not raise its order: the constraint holds at

@@ -37,7 +37,6 @@ import math
 from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
-import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
@@ -52,10 +51,10 @@ from .base import (
     AbstractSymmetricSecondOrderMethod,
     agrees,
     check_optional_bool,
+    chord_matrix_is_dear,
     displacements_for_step,
     HISTORY,
     increment_scale,
-    KEPT_ABOVE_UNKNOWNS,
     resolution_of,
     step_key,
     with_displacement,
@@ -360,10 +359,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         the class docstring)."""
         if self.reuse_chord_matrix is not None:
             return self.reuse_chord_matrix
-        q, _ = y0
-        constraints = jax.eval_shape(system.constraints, q, args).shape[0]
-        on_position = metric_is(metric_of(system, y0, args), "position")
-        return on_position or 2 * q.shape[0] - constraints > KEPT_ABOVE_UNKNOWNS
+        return chord_matrix_is_dear(system, y0, args, lambda n, k: 2 * n - k)
 
     def chord_key(self, data):
         """The step size and the frame's signs, for which the chord matrix holds."""

@@ -98,9 +98,9 @@ def test_gonzalez_f_keeps_its_matrix_where_forming_it_is_dear():
     assert not nh.GonzalezF(reuse_chord_matrix=False).reuses_chord_matrix(sleigh.canonical, y0, sleigh.args)
     run = nh.integrate(sleigh.canonical, nh.GonzalezF(), y0, 0.1, 20, args=sleigh.args)
     assert 1 <= int(run.stats["chord_matrices"]) < 20
-    for n, kept in ((28, False), (32, True)):  # 63 and 72 unknowns
+    for n, expected in ((28, False), (32, True)):  # 63 and 72 unknowns
         q = jnp.linspace(0.1, 0.5, n)
-        assert nh.GonzalezF().reuses_chord_matrix(_unit_metric_system(n), (q, jnp.zeros(n)), None) == kept
+        assert nh.GonzalezF().reuses_chord_matrix(_unit_metric_system(n), (q, jnp.zeros(n)), None) == expected
     with pytest.raises(ValueError, match="GonzalezF: reuse_chord_matrix"):
         nh.GonzalezF(reuse_chord_matrix=1)
 
