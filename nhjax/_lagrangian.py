@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._linalg import is_quadratic_form, solve_spd
+from ._linalg import is_quadratic_form, jacobian_by_columns, solve_spd
 from ._user_function import traced_once
 
 
@@ -37,14 +37,23 @@ class LegendreHamiltonian(eqx.Module):
     lagrangian: Lagrangian = eqx.field(converter=traced_once)
 
     def mass_matrix(self, q: Float[Array, " n"], args: Any) -> Float[Array, "n n"]:
-        r"""$M(q)$, column by column: $Me_i = \partial L/\partial\dot q(q, e_i)$, exact for
-        $L$ of mechanical type (the only kind this Hamiltonian describes, checked by
-        `is_mechanical`). One reverse pass of $L$, batched over the unit velocities,
-        where the Hessian in $\dot q$ would differentiate twice: derivatives of $H$
-        trace this matrix again, so its order counts twice over."""
+        r"""$M(q)$, column by column: $Me_i$ is the derivative of
+        $\partial L/\partial\dot q(q, \cdot)$ at $\dot q = 0$ along $e_i$, exact for $L$
+        of mechanical type (the only kind this Hamiltonian describes, checked by
+        `is_mechanical`), for which $\partial L/\partial\dot q(q, u) = M(q)u$.
+
+        One reverse pass of $L$, linearised once at $\dot q = 0$ and applied to the unit
+        velocities one at a time in a loop (`nhjax._linalg.jacobian_by_columns`).
+        Batched over the units instead (`jax.vmap`), the products inside $L$ (its
+        $M(q)\dot q$) become matrix products, library calls of their own on XLA:CPU,
+        on arrays too large for a step's operations to run in sequence; the matrix
+        is formed wherever $H$ or a derivative of it is evaluated, several times a step,
+        and so Euler's disk from its Lagrangian took 1.7 times as long per
+        GONZALEZ-R step as from its mass matrix, against 1.1 this way
+        (`benchmarks/scaling.py`). Unrolled, the loop's n copies of the pass grew the
+        program and its compilation by a third."""
         velocity_gradient = jax.grad(self.lagrangian, argnums=1)
-        units = jnp.eye(q.shape[0], dtype=q.dtype)
-        return jax.vmap(velocity_gradient, in_axes=(None, 0, None), out_axes=1)(q, units, args)
+        return jacobian_by_columns(lambda u: velocity_gradient(q, u, args), jnp.zeros_like(q))
 
     def __call__(self, q: Float[Array, " n"], p: Float[Array, " n"], args: Any) -> Float[Array, ""]:
         return eqx.filter_jit(_legendre_transform)(self, q, p, args)
