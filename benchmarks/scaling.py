@@ -52,7 +52,8 @@ slope of log(µs/step) against log(n) over the sizes from 16 on.
 Beside the family, Euler's disk (`nhjax.examples.rolling_disk_3d`, n = 5, k = 2, a
 metric that depends on q: a system as a mechanician derives it) in both its forms, the
 Hamiltonian from the mass matrix and the Lagrangian (`from_lagrangian`), every method,
-h = 0.01 from a generic start.
+h = 0.01 from a generic start, each method's two forms timed in turns, and the
+Lagrangian form's time per step over the mass matrix's.
 
 Against SciPy (`--parts scipy`): the same disk to t = 10 as a mechanician who derives it
 with sympy would integrate it, SciPy's DOP853 on the equations of
@@ -208,11 +209,17 @@ def _methods_in_turns(system, methods, y0, h, steps, repeats, args=None, extra_r
             )
         )
     solutions, figures = _in_turns(runs, y0, repeats, steps)
-    for name in methods:
-        total = solutions[name].stats.get("root_find_steps")
-        figures[name]["iterations_per_step"] = None if total is None else float(total) / steps
-        figures[name]["successful"] = bool(solutions[name].result == nh.RESULTS.successful)
+    _add_outcomes(figures, {name: solutions[name] for name in methods}, steps)
     return figures
+
+
+def _add_outcomes(figures, solutions, steps):
+    """Each run's root-finder iterations per step and whether it succeeded, into its
+    figures."""
+    for name, solution in solutions.items():
+        total = solution.stats.get("root_find_steps")
+        figures[name]["iterations_per_step"] = None if total is None else float(total) / steps
+        figures[name]["successful"] = bool(solution.result == nh.RESULTS.successful)
 
 
 def main():
@@ -319,16 +326,38 @@ DISK_START = dict(q=jnp.array([0.3, -0.2, 0.4, 0.25, 0.1]), turn_rate=0.6, lean_
 
 
 def _disk(methods, repeats):
-    """Every method on Euler's disk in both forms: µs/step, compile s, iterations."""
+    """Every method on Euler's disk in both forms, the two forms of each method timed in
+    turns: µs/step, compile s, iterations, and the Lagrangian form's time over the
+    mass matrix's."""
     disk = nh.examples.rolling_disk_3d()
     y0 = disk.state(**DISK_START)
     forms = dict(mass_matrix_hamiltonian=disk.canonical, lagrangian=disk.canonical_from_lagrangian)
-    results = {}
-    for form, system in forms.items():
-        row = _methods_in_turns(system, methods, y0, 0.01, DISK_STEPS, repeats, disk.args)
-        results[form] = row
-        print(f"3D rolling disk, {form}: " + _method_columns(row, methods), flush=True)
+    results = {form: {} for form in forms}
+    ratios = {}
+    for name, method in methods.items():
+        for form, figures in _forms_in_turns(forms, method.solver, y0, repeats, disk.args).items():
+            results[form][name] = figures
+        ratios[name] = results["lagrangian"][name]["us_per_step"] / results["mass_matrix_hamiltonian"][name]["us_per_step"]
+    for form in forms:
+        print(f"3D rolling disk, {form}: " + _method_columns(results[form], methods), flush=True)
+    print("Lagrangian over mass matrix, per step: " + ", ".join(f"{name} {ratio:.2f}" for name, ratio in ratios.items()))
+    results["lagrangian_over_mass_matrix"] = ratios
     return results
+
+
+def _forms_in_turns(forms, solver, y0, repeats, args):
+    """One method's runs of `DISK_STEPS` steps on each form, timed in turns (`_in_turns`)."""
+    runs = {
+        form: jax.jit(
+            lambda y, system=system: nh.integrate(
+                system, solver, y, 0.01, DISK_STEPS, args=args, save_every=DISK_STEPS, throw=False
+            )
+        )
+        for form, system in forms.items()
+    }
+    solutions, figures = _in_turns(runs, y0, repeats, DISK_STEPS)
+    _add_outcomes(figures, solutions, DISK_STEPS)
+    return figures
 
 
 T1 = 10.0
