@@ -36,7 +36,7 @@ alternate (the constraint's residual 1.7e-4 and 1e-6 at every other step for 5
 trailers), so a predictor extrapolating the last steps does no better. At h = 0.0125
 the iteration stalls at 9 to 45 tolerances in the constraint rows of the train's
 tail, with the momentum rows at 0.01: a rounding that the floor (the rounding of the
-points evaluated at) does not include, we take it that of the velocity $M(q)^{-1}p$.
+points evaluated at) does not include, presumably that of the velocity $M(q)^{-1}p$.
 
 For each n and method: median µs/step (`--repeats` timed runs after a warm-up, the
 methods and the yardstick of one size timed in turns, `run_and_time_interleaved`, so
@@ -203,14 +203,15 @@ def _methods_in_turns(system, methods, y0, h, steps, repeats, args=None, extra_r
     methods root-finder iterations per step and whether it succeeded."""
     runs = dict(extra_runs or {})
     for name, method in methods.items():
-        runs[name] = jax.jit(
-            lambda y, solver=method.solver: nh.integrate(
-                system, solver, y, h, steps, args=args, save_every=steps, throw=False
-            )
-        )
+        runs[name] = _compiled_run(system, method.solver, h, steps, args)
     solutions, figures = _in_turns(runs, y0, repeats, steps)
     _add_outcomes(figures, {name: solutions[name] for name in methods}, steps)
     return figures
+
+
+def _compiled_run(system, solver, h, steps, args):
+    """`steps` steps of `solver` from a state (the argument), saving the end only."""
+    return jax.jit(lambda y: nh.integrate(system, solver, y, h, steps, args=args, save_every=steps, throw=False))
 
 
 def _add_outcomes(figures, solutions, steps):
@@ -347,14 +348,7 @@ def _disk(methods, repeats):
 
 def _forms_in_turns(forms, solver, y0, repeats, args):
     """One method's runs of `DISK_STEPS` steps on each form, timed in turns (`_in_turns`)."""
-    runs = {
-        form: jax.jit(
-            lambda y, system=system: nh.integrate(
-                system, solver, y, 0.01, DISK_STEPS, args=args, save_every=DISK_STEPS, throw=False
-            )
-        )
-        for form, system in forms.items()
-    }
+    runs = {form: _compiled_run(system, solver, 0.01, DISK_STEPS, args) for form, system in forms.items()}
     solutions, figures = _in_turns(runs, y0, repeats, DISK_STEPS)
     _add_outcomes(figures, solutions, DISK_STEPS)
     return figures
