@@ -253,6 +253,13 @@ def solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
     return inverse(a) @ b
 
 
+def is_accurate_inverse(a: Float[Array, "n n"], inverse_of_a: Float[Array, "n n"]) -> Bool[Array, ""]:
+    r"""Whether $\max|a\,x - I| \le \sqrt{\varepsilon}$ for `inverse_of_a` $= x$
+    (false where it is not finite)."""
+    identity = jnp.eye(a.shape[0], dtype=a.dtype)
+    return jnp.max(jnp.abs(a @ inverse_of_a - identity)) <= jnp.sqrt(jnp.finfo(a.dtype).eps)
+
+
 def is_diagonally_dominant(a: Float[Array, "n n"]) -> Bool[Array, ""]:
     """Whether `a` is strictly diagonally dominant by rows or by columns."""
     magnitudes = jnp.abs(a)

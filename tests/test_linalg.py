@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from nhjax._linalg import (
     blocked_product,
     inverse,
+    is_accurate_inverse,
     is_diagonally_dominant,
     LAPACK_UNBATCHED_FROM,
     product,
@@ -68,6 +69,16 @@ def test_diagonal_dominance():
     assert bool(is_diagonally_dominant(jnp.array([[2.0, 0.1], [1.5, 1.0]])))  # by rows, not by columns
     assert not bool(is_diagonally_dominant(jnp.array([[1.0, 1.0], [1.0, 3.0]])))  # ties are not strict
     assert not bool(is_diagonally_dominant(jnp.array([[1.0, 2.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.0, 1.0]])))
+
+
+def test_is_accurate_inverse():
+    a = jnp.array([[2.0, 1.0], [1.0, 3.0]])
+    exact = jnp.linalg.inv(a)
+    assert bool(is_accurate_inverse(a, exact))
+    assert not bool(is_accurate_inverse(a, exact + 1e-6))
+    assert not bool(is_accurate_inverse(a, exact.at[0, 0].set(jnp.nan)))
+    single = a.astype(jnp.float32)
+    assert bool(is_accurate_inverse(single, jnp.linalg.inv(single) + 1e-5))  # within sqrt(eps) of float32
 
 
 def test_inverse_needs_pivoting_and_reports_singular_matrices():

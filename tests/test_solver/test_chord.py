@@ -11,7 +11,7 @@ import optimistix as optx
 import pytest
 
 import nhjax as nh
-from nhjax._linalg import SEQUENTIAL_BYTES
+from nhjax._linalg import inverse, is_diagonally_dominant, SEQUENTIAL_BYTES
 from nhjax._solver.chord import chord_inverse, ChordSolution, PresetChord, STALL_FACTOR
 
 
@@ -247,6 +247,29 @@ def test_chord_inverse_pivots_only_where_needed_also_within_a_batch():
     batch = jax.jit(jax.vmap(chord_inverse))(jnp.stack([dominant, needs_pivoting, dominant]))
     for a, inverse in zip((dominant, needs_pivoting, dominant), batch):
         np.testing.assert_allclose(inverse @ a, jnp.eye(3), atol=1e-15)
+
+
+def test_chord_inverse_keeps_an_accurate_unpivoted_inverse_and_pivots_an_inaccurate_one():
+    """A matrix neither row- nor column-dominant but with pivots far from zero keeps
+    its unpivoted inverse (bit for bit); one whose first pivot is tiny, whose
+    unpivoted inverse is finite but wrong, gets the pivoted one; alone and in one
+    vmapped batch."""
+    moderate = jnp.array([[1.0, 0.9, 0.8, 0.1], [0.7, 1.0, 0.9, 0.3], [0.2, 0.8, 1.0, 0.9], [0.9, 0.1, 0.7, 1.0]])
+    tiny_pivot = jnp.array([[1e-17, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 2.0]])
+    assert not bool(is_diagonally_dominant(moderate))
+    unpivoted = jax.jit(lambda a: inverse(a, pivoting=False))
+    wrong = unpivoted(tiny_pivot)
+    assert bool(jnp.all(jnp.isfinite(wrong))) and float(jnp.max(jnp.abs(wrong @ tiny_pivot - jnp.eye(3)))) > 0.1
+    jitted = jax.jit(chord_inverse)
+    np.testing.assert_array_equal(jitted(moderate), unpivoted(moderate))
+    np.testing.assert_allclose(jitted(moderate) @ moderate, jnp.eye(4), atol=1e-14)
+    np.testing.assert_allclose(jitted(tiny_pivot) @ tiny_pivot, jnp.eye(3), atol=1e-15)
+    padded = jnp.zeros((4, 4)).at[:3, :3].set(tiny_pivot).at[3, 3].set(1.0)
+    matrices = jnp.stack([moderate, padded, moderate])
+    batch = jax.jit(jax.vmap(chord_inverse))(matrices)
+    np.testing.assert_array_equal(batch[0], jax.jit(jax.vmap(lambda a: inverse(a, pivoting=False)))(matrices)[0])
+    for a, inverse_of_a in zip(matrices, batch):
+        np.testing.assert_allclose(inverse_of_a @ a, jnp.eye(4), atol=1e-14)
 
 
 def _computations(hlo: str) -> dict[str, list[str]]:
