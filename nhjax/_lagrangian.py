@@ -48,10 +48,10 @@ class LegendreHamiltonian(eqx.Module):
         $M(q)\dot q$) become matrix products, library calls of their own on XLA:CPU,
         on arrays too large for a step's operations to run in sequence; the matrix
         is formed wherever $H$ or a derivative of it is evaluated, several times a step,
-        and so Euler's disk from its Lagrangian took 1.59 times as long per
-        GONZALEZ-R step as from its mass matrix, against 1.12 this way
-        (`benchmarks/scaling.py`, which times the two forms in turns). Unrolled, the
-        loop's n copies of the pass grew the program and its compilation by a third."""
+        and so Euler's disk from its Lagrangian stepped markedly slower than from its
+        mass matrix, where by columns it steps about as fast (`benchmarks/scaling.py`
+        times the two forms in turns). Unrolled, the loop's n copies of the pass grew
+        the program and its compilation by a third."""
         velocity_gradient = jax.grad(self.lagrangian, argnums=1)
         return jacobian_by_columns(lambda u: velocity_gradient(q, u, args), jnp.zeros_like(q))
 
