@@ -25,7 +25,15 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int, Scalar
 
-from .._linalg import blocked_product, inverse, is_accurate_inverse, is_diagonally_dominant, product, row_blocks, UNROLL_LIMIT
+from .._linalg import (
+    blocked_product,
+    inverse,
+    is_accurate_inverse,
+    is_diagonally_dominant,
+    product,
+    row_blocks,
+    UNROLL_LIMIT,
+)
 from .._rare_branch import rarely
 
 
@@ -43,7 +51,7 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     $I - O(h)$ is for small steps and the methods whose unknowns are increments. At
     large steps a chord matrix is often not dominant yet well conditioned, with
     pivots far from zero (the energy-preserving collocation's real blocks at order
-    12 and $h = 0.7$ on the quartic, of condition 2 to 3): there the unpivoted
+    12 and $h = 0.7$ on the quartic, of condition 1.6 to 2.8): there the unpivoted
     inverse $X$ is kept where $\max|JX - I| \le \sqrt\varepsilon$
     (`nhjax._linalg.is_accurate_inverse`), an error that changes the iteration's
     contraction by as little, not its root; a vanishing or tiny pivot (GONZALEZ-F,

@@ -245,8 +245,8 @@ def test_chord_inverse_pivots_only_where_needed_also_within_a_batch():
     for a in (dominant, needs_pivoting):
         np.testing.assert_allclose(jitted(a) @ a, jnp.eye(3), atol=1e-15)
     batch = jax.jit(jax.vmap(chord_inverse))(jnp.stack([dominant, needs_pivoting, dominant]))
-    for a, inverse in zip((dominant, needs_pivoting, dominant), batch):
-        np.testing.assert_allclose(inverse @ a, jnp.eye(3), atol=1e-15)
+    for a, inverse_of_a in zip((dominant, needs_pivoting, dominant), batch):
+        np.testing.assert_allclose(inverse_of_a @ a, jnp.eye(3), atol=1e-15)
 
 
 def test_chord_inverse_keeps_an_accurate_unpivoted_inverse_and_pivots_an_inaccurate_one():
@@ -267,7 +267,7 @@ def test_chord_inverse_keeps_an_accurate_unpivoted_inverse_and_pivots_an_inaccur
     padded = jnp.zeros((4, 4)).at[:3, :3].set(tiny_pivot).at[3, 3].set(1.0)
     matrices = jnp.stack([moderate, padded, moderate])
     batch = jax.jit(jax.vmap(chord_inverse))(matrices)
-    np.testing.assert_array_equal(batch[0], jax.jit(jax.vmap(lambda a: inverse(a, pivoting=False)))(matrices)[0])
+    np.testing.assert_array_equal(batch[0], jax.jit(jax.vmap(unpivoted))(matrices)[0])
     for a, inverse_of_a in zip(matrices, batch):
         np.testing.assert_allclose(inverse_of_a @ a, jnp.eye(4), atol=1e-14)
 
