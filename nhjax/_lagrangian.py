@@ -63,6 +63,36 @@ class LegendreHamiltonian(eqx.Module):
         velocity = solve_spd(self.mass_matrix(q, args), p)
         return velocity, 0.5 * p @ velocity - self.lagrangian(q, jnp.zeros_like(q), args)
 
+    def index_one_terms(
+        self, q: Float[Array, " n"], p: Float[Array, " n"], rows: Float[Array, "k n"], args: Any
+    ) -> tuple[Float[Array, " n"], Float[Array, "n k"], Float[Array, " n"], Float[Array, " k"]]:
+        r"""What the index-1 field of a constrained system (`nhjax.NonholonomicSystem.
+        multiplier`) needs of $H$ at $(q, p)$, from $M(q)$ formed once: the velocity
+        $v = M^{-1}p$, $M^{-1}R^T$ for the constraint's `rows` $R$,
+        $\partial_qH = -\partial_qL(q, v)$ (the envelope theorem, as in
+        `_legendre_transform_jvp`), and $R\,\partial_qv[v]$, the rows times the
+        velocity's derivative along itself at fixed $p$.
+
+        Differentiating $M(q)v = p$ at fixed $p$ gives
+        $\partial M[v]\,v + M\,\partial_qv[v] = 0$, and $\partial M[v]\,v =
+        \partial_q(\partial L/\partial\dot q)(q, v)[v]$ since
+        $\partial L/\partial\dot q(q, u) = M(q)u$: so
+        $R\,\partial_qv[v] = -(M^{-1}R^T)^T\partial_q(\partial L/\partial\dot q)
+        (q, v)[v]$, one forward-over-reverse pass of $L$, where autodiff of
+        $\partial_pH$ in $q$ would differentiate the formation of $M$ and the solve.
+        Each evaluation of $H$ or of a derivative of it forms $M$ anew (a loop, which
+        XLA does not merge with another), and the field needs four of them, so the
+        system takes these together (`benchmarks/scaling.py` times both forms of
+        Euler's disk)."""
+        mass = self.mass_matrix(q, args)
+        solved = solve_spd(mass, jnp.concatenate([p[:, None], rows.T], axis=1))
+        velocity, k_rows = solved[:, 0], solved[:, 1:]
+        position_gradient = -jax.grad(self.lagrangian, argnums=0)(q, velocity, args)
+        momentum_turn = jax.jvp(
+            lambda x: jax.grad(self.lagrangian, argnums=1)(x, velocity, args), (q,), (velocity,)
+        )[1]
+        return velocity, k_rows, position_gradient, -k_rows.T @ momentum_turn
+
     def is_mechanical(
         self, q: Float[Array, " n"], velocity: Float[Array, " n"], args: Any, tolerance: Callable
     ) -> Bool[Array, ""]:

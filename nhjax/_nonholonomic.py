@@ -194,16 +194,29 @@ class NonholonomicSystem(AbstractSystem):
         $A K A^T\lambda = A K (\partial_q H + Dv - F) - \partial_q(Av)[v]$
         (differentiating the constraint along the flow; $D$ and $F$ at time `t`, where
         the system has them)."""
+        return self._index_one(t, y, args)[2]
+
+    def _index_one(self, t, y, args) -> tuple[Array, Array, Array, Array]:
+        r"""$v$, the force $-\partial_qH - Dv + F$, $\lambda$ (`multiplier`) and $A$. A
+        system given by its Lagrangian has its terms from one formation of $M$
+        (`LegendreHamiltonian.index_one_terms`)."""
         q, p = y
         a = self.constraints(q, args)
-        v = self.velocity(q, p, args)
-        force = jax.grad(self.hamiltonian, argnums=0)(q, p, args)
-        applied = self.applied_force(t, q, p, args)
+        if isinstance(self.hamiltonian, LegendreHamiltonian):
+            v, ka_t, position_gradient, velocity_turn = self.hamiltonian.index_one_terms(q, p, a, args)
+            _, constraint_turn = jax.jvp(lambda x: self.constraints(x, args), (q,), (v,))
+            drift = constraint_turn @ v + velocity_turn
+        else:
+            position_gradient, v = jax.grad(self.hamiltonian, argnums=(0, 1))(q, p, args)
+            _, drift = jax.jvp(lambda x: self.constraints(x, args) @ self.velocity(x, p, args), (q,), (v,))
+            # K a_i is the velocity at the momentum a_i, H being quadratic in p with no
+            # linear term: k gradients, where K itself takes n tangents.
+            ka_t = jax.vmap(lambda row: self.velocity(q, row, args), out_axes=1)(a)
+        force = -position_gradient
+        applied = self.applied_force(t, q, p, args, velocity=v)
         if applied is not None:
-            force = force - applied
-        _, drift = jax.jvp(lambda x: self.constraints(x, args) @ self.velocity(x, p, args), (q,), (v,))
-        ka_t = self.inverse_metric(q, args) @ a.T
-        return solve_spd(a @ ka_t, ka_t.T @ force - drift)
+            force = force + applied
+        return v, force, solve_spd(a @ ka_t, -ka_t.T @ force - drift), a
 
     def applied_force(self, t, q, p, args, velocity=None) -> Float[Array, " n"] | None:
         r"""$-D(q, p)\,v + F(t, q, p)$, the force of the dissipation and the force on the
@@ -220,13 +233,8 @@ class NonholonomicSystem(AbstractSystem):
         return applied
 
     def field(self, t, y, args):
-        q, p = y
-        force = -jax.grad(self.hamiltonian, argnums=0)(q, p, args)
-        applied = self.applied_force(t, q, p, args)
-        if applied is not None:
-            force = force + applied
-        reaction = self.constraints(q, args).T @ self.multiplier(y, args, t)
-        return self.velocity(q, p, args), force + reaction
+        v, force, multiplier, a = self._index_one(t, y, args)
+        return v, force + a.T @ multiplier
 
     def power(self, t, y, args):
         q, p = y

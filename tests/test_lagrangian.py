@@ -60,6 +60,41 @@ def test_the_legendre_transforms_derivatives_are_those_of_the_examples_hamiltoni
     assert max(float(jnp.max(jnp.abs(leaf))) for leaf in expected) > 0.1  # not trivially zero
 
 
+@pytest.mark.parametrize("name", list(STARTS) + ["Euler's disk", "Euler's disk, forced"])
+def test_the_index_one_field_of_both_forms_agrees(name):
+    """The index-1 field (the multiplier eliminated), which a system given by its
+    Lagrangian computes from one formation of M (`LegendreHamiltonian.index_one_terms`)
+    and one given by H by autodiff of H, and its Jacobian in (q, p), agree at random
+    states; on Euler's disk also with a dissipation and a force, given to each form
+    in its own variables."""
+    if name.startswith("Euler's disk"):
+        example = nh.examples.rolling_disk_3d()
+        n = 5
+    else:
+        example = EXAMPLES[name]
+        n = STARTS[name][1][0].shape[0]
+    given, derived = example.canonical, example.canonical_from_lagrangian
+    if name.endswith("forced"):
+        damping = lambda q: jnp.diag(0.1 + 0.05 * jnp.cos(q))  # noqa: E731
+        push = lambda t, q: jnp.sin(t + jnp.arange(n) + q)  # noqa: E731
+        given = nh.NonholonomicSystem(given.hamiltonian, example.constraints, lambda q, p, args: damping(q),
+                                      lambda t, q, p, args: push(t, q))
+        derived = nh.NonholonomicSystem.from_lagrangian(
+            example.lagrangian, example.constraints, dissipation=lambda q, qdot, args: damping(q),
+            force=lambda t, q, qdot, args: push(t, q))
+    keys = jax.random.split(jax.random.key(5), 2)
+    qs, ps = (0.5 * jax.random.normal(key, (5, n)) for key in keys)
+
+    def field_and_jacobian(system):
+        field = lambda y: jnp.concatenate(system.vf(0.7, y, example.args))  # noqa: E731
+        return jax.jit(jax.vmap(lambda q, p: (field((q, p)), jax.jacfwd(field)((q, p)))))(qs, ps)
+
+    expected = jax.tree.leaves(field_and_jacobian(given))
+    for got, want in zip(jax.tree.leaves(field_and_jacobian(derived)), expected, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11 * (1 + float(jnp.max(jnp.abs(want)))))
+    assert min(float(jnp.max(jnp.abs(leaf))) for leaf in expected) > 0.1  # not trivially zero
+
+
 def test_the_momentum_of_a_velocity_is_the_lagrangians_derivative():
     """p = M(q) qdot against dL/dqdot by autodiff of the Lagrangian itself, on the
     sleigh (q-dependent M); for a velocity on the constraint, p is on it too."""

@@ -59,10 +59,12 @@ class _ProjectionData(eqx.Module):
 def _invariants(system: AbstractSystem, y, args, energy) -> Float[Array, " r"]:
     r"""$g(y)$, zero on the invariant set: $H(y) - H_0$, and for a `NonholonomicSystem`
     also the constraint $A(q)\,\partial_pH(q, p)$."""
-    drift = jnp.reshape(system.energy(y, args) - energy, (1,))
     if isinstance(system, NonholonomicSystem):
-        return jnp.concatenate([drift, system.constraint_residual(y, args)])
-    return drift
+        # H and A dH/dp from one evaluation of H and its gradient (`observables`): a
+        # system given by its Lagrangian forms M(q) once for both.
+        observed = system.observables(y, args)
+        return jnp.concatenate([jnp.reshape(observed["energy"] - energy, (1,)), observed["constraint"]])
+    return jnp.reshape(system.energy(y, args) - energy, (1,))
 
 
 def _row_scales(system: AbstractSystem, y, args, energy) -> Float[Array, " r"]:
