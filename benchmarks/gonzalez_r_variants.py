@@ -8,8 +8,10 @@ interleaved (A, B, C, A, B, C, ...) so that the machine's drift falls on all ali
   (`nhjax._reduced.ReducedSystem.field_jacobian` without `frame_turn`);
 - `no predictor`: every step starts from no motion, as the first step of a run does
   (the chord iteration's first iterate then a linearly implicit Euler step);
-- `jacfwd chord matrix`: the generic `jax.jacfwd` of the simplified residual for the
-  chord matrix (`GonzalezR(exact_chord_matrix=True)`);
+- `exact chord matrix`: the Jacobian of the simplified residual for the chord matrix
+  by forward differences (`GonzalezR(exact_chord_matrix=True)`), and
+  `jacfwd chord matrix`: the same Jacobian by `jax.jacfwd` (second derivatives of the
+  QR), as that option formed it before;
 - `formed frame derivative`: $J = \partial_q(X^Tp)$ formed at every residual by
   `jax.jacfwd` through the QR ($n$ tangents), where the method takes the products
   $Jv$ and $J^Tw$ from one linearisation.
@@ -63,6 +65,13 @@ class _NoFrameTurnReduced(ReducedSystem):
         return super().field_jacobian(zeta, t, args)
 
 
+class JacfwdChordMatrix(nh.GonzalezR):
+    """The exact chord matrix by `jax.jacfwd` through the residual, not by differences."""
+
+    def chord_jacobian(self, u, data):
+        return jax.jacfwd(self.simplified_residual)(u, data)
+
+
 def _on_reduced(reduced_type):
     """GONZALEZ-R with its reduced system of type `reduced_type`."""
 
@@ -78,7 +87,8 @@ VARIANTS = {
     "GONZALEZ-R": nh.GonzalezR(reuse_chord_matrix=False),
     "no frame turn": _on_reduced(_NoFrameTurnReduced),
     "no predictor": NoPredictor(reuse_chord_matrix=False),
-    "jacfwd chord matrix": nh.GonzalezR(exact_chord_matrix=True, reuse_chord_matrix=False),
+    "exact chord matrix": nh.GonzalezR(exact_chord_matrix=True, reuse_chord_matrix=False),
+    "jacfwd chord matrix": JacfwdChordMatrix(reuse_chord_matrix=False),
     "formed frame derivative": _on_reduced(_FormedFrameDerivativeReduced),
 }
 

@@ -307,6 +307,39 @@ def jacobian_by_columns(
     return lax.map(linear, jnp.eye(x.shape[0], dtype=x.dtype)).T
 
 
+def jacobian_by_differences(
+    function: Callable[[Float[Array, " n"]], Float[Array, " m"]],
+    x: Float[Array, " n"],
+    one_at_a_time: bool = False,
+) -> Float[Array, "m n"]:
+    r"""The Jacobian of `function` at `x` by forward differences,
+    $(f(x + \delta_je_j) - f(x))/\delta_j$ with
+    $\delta_j = \sqrt\varepsilon\,\max(|x_j|, 1)$ (`x` in units in which 1 is its
+    natural size), taken as the difference of the perturbed and the unperturbed
+    $x_j$ as they are stored: its error is $O(\sqrt\varepsilon)$ relative to $f$'s
+    variation (truncation and rounding balanced; Dennis & Schnabel, *Numerical
+    Methods for Unconstrained Optimization and Nonlinear Equations*, §5.4). For a
+    chord matrix, where that error changes the iteration's contraction by as
+    little and not its root, and where $f$'s own derivatives (through a QR, say)
+    would make a program several times the size of $f$'s.
+
+    $n + 1$ evaluations of $f$: batched (`jax.vmap`), or with `one_at_a_time` in a
+    loop of $n$ trips whose arrays are those of one evaluation (as
+    `jacobian_by_columns`)."""
+    step = jnp.sqrt(jnp.finfo(x.dtype).eps) * jnp.maximum(jnp.abs(x), 1)
+    step = (x + step) - x
+    at_x = function(x)
+
+    def column(j):
+        moved = x.at[j].add(step[j])
+        return (function(moved) - at_x) / step[j]
+
+    indices = jnp.arange(x.shape[0])
+    if one_at_a_time:
+        return lax.map(column, indices).T
+    return jax.vmap(column, out_axes=1)(indices)
+
+
 def rows_per_block(columns: int, dtype) -> int:
     """The most rows of `columns` entries of `dtype` within `SEQUENTIAL_BYTES` (at least
     one): the height of a `row_blocks` block."""

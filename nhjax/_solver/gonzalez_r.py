@@ -43,7 +43,7 @@ import optimistix as optx
 from jaxtyping import Array
 
 from .._discrete_gradient import Branch, gonzalez_correction
-from .._linalg import jacobian_by_columns, SEQUENTIAL_BYTES
+from .._linalg import jacobian_by_differences, SEQUENTIAL_BYTES
 from .._nonholonomic import NonholonomicSystem
 from .._reduced import check_derivative, Derivative, metric_is, metric_of, ReducedSystem
 from .chord import REMAINDER
@@ -63,12 +63,11 @@ from .base import (
 
 # Up to this many unknowns the exact chord matrix (formed only where it is kept, so at
 # few steps) may be formed a column at a time (`GonzalezR._columnwise`,
-# `jacobian_by_columns`): its arrays are then small enough that XLA:CPU runs the
-# step's operations in sequence (`nhjax._linalg.SEQUENTIAL_BYTES`), which pays at every
-# step. Measured in turns, per step: Euler's disk (N = 8, whose N tangents at once
-# through three products with M(q)^{-1} made 5 x 29 arrays) 0.56 of the time with its
-# mass matrix, 0.76 from its Lagrangian; the sleigh (N = 5), whose arrays were small
-# already, 1.16, so it keeps the tangents together.
+# `jacobian_by_differences` with `one_at_a_time`): its arrays are then small enough
+# that XLA:CPU runs the step's operations in sequence
+# (`nhjax._linalg.SEQUENTIAL_BYTES`), which pays at every step. Measured in turns, per
+# step: Euler's disk (N = 8, whose N residuals at once carry 8 metrics M(q)) 0.62 of
+# the time with its mass matrix, 0.42 from its Lagrangian.
 COLUMNWISE_UP_TO = 8
 
 
@@ -156,14 +155,19 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         disk).
     - `exact_chord_matrix`: `False` for `chord_jacobian`'s matrix with the
         frame held, `True` for the Jacobian of the residual without its correction
-        term by `jax.jacfwd`
-        ($N$ tangents through second derivatives of the QR), which contracts the
-        iteration by $O(h^3)$. Which is cheaper depends on how far the frame turns
-        within $\mathcal{D}$ and on $N$: at $h = 0.1$
+        term, by forward differences (`nhjax._linalg.jacobian_by_differences`: $N + 1$
+        residuals, accurate to $O(\sqrt\varepsilon)$, which changes the contraction
+        by as little), which contracts the iteration by $O(h^3)$. Which is cheaper
+        depends on how far the frame turns within $\mathcal{D}$ and on $N$: at
+        $h = 0.1$ with the matrix formed at every step
         (`benchmarks/gonzalez_r_variants.py`) the exact matrix takes a tractor pulling
-        5 trailers from 11.4 to 3.4 iterations a step and 0.59 of the time, Euler's
-        disk and the quartic with $n = 10$ to 0.62 and 0.74, but the synthetic system
-        with $n = 16$ to 1.79 and the gearbox to 1.11. The root is the same either
+        5 trailers from 9.0 to 2.7 iterations a step and 0.50 of the time, Euler's
+        disk from 10.8 to 6.0 and 0.59, the quartic with $n = 3$ and $10$ 0.83 and
+        0.88, but the synthetic system with $n = 16$ 1.54 and the gearbox 1.12. Formed
+        by `jax.jacfwd` instead ($N$ tangents through second derivatives of the QR)
+        it took 0.61, 1.05, 0.95, 0.95, 1.77 and 1.17 of the time, and compiled longer
+        (the tractor 18.2 s against 12.8 s, Euler's disk 13.9 s against 10.5 s).
+        The root is the same either
         way, to the iteration's tolerance. `None` (default): the exact matrix where
         the metric depends on $q$ and the matrix is kept (`reuse_chord_matrix` not
         `False`), where its cost is spread over the steps it serves and its faster
@@ -390,17 +394,17 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         with it, and with the exact matrix: synthetic systems of
         `benchmarks/scaling.py` at $n = 8$ 8.4, 5.7, 3.9 and $n = 16$ 9.0, 5.9, 4.0;
         $n = 3$ quartic 6.3, 4.9; gearbox 3.9 either way (its frame turns only out of
-        $\mathcal{D}$); Euler's disk 9.0, 9.0, 4.6. The exact matrix takes $N$
-        tangents through second derivatives of the QR, which cost more than the
-        iterations they save from $n = 16$ on.
+        $\mathcal{D}$); Euler's disk 9.0, 9.0, 4.6. The exact matrix costs $N + 1$
+        residuals, more than the iterations it saves from $n = 16$ on.
         The root does not depend on the matrix, and derivatives of the root do not use
         it (see `nhjax._solver.chord`). With `exact_chord_matrix`, that Jacobian by
-        `jax.jacfwd` instead, or a column at a time for small systems whose metric's
-        derivatives along all tangents at once would be large arrays (`_columnwise`)."""
+        forward differences instead (`nhjax._linalg.jacobian_by_differences`), its
+        residuals batched, or one at a time for small systems whose evaluations at all
+        $N$ points at once would be large arrays (`_columnwise`)."""
         if self.uses_exact_chord_matrix(data):
-            if self._columnwise(u, data):
-                return jacobian_by_columns(lambda v: self.simplified_residual(v, data), u)
-            return super().chord_jacobian(u, data)
+            return jacobian_by_differences(
+                lambda v: self.simplified_residual(v, data), u, one_at_a_time=self._columnwise(u, data)
+            )
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args, frame_turn=True)
         return jnp.eye(u.shape[0], dtype=u.dtype) - (h / scale)[:, None] * field_jacobian * (0.5 * scale)[None, :]
@@ -408,8 +412,8 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
     @staticmethod
     def _columnwise(u, data) -> bool:
         r"""Whether the exact chord matrix is formed a column at a time: with few unknowns
-        (`COLUMNWISE_UP_TO`), where its $N$ tangents at once would carry $N$ copies of
-        an $n \times n$ metric's derivative past `SEQUENTIAL_BYTES`."""
+        (`COLUMNWISE_UP_TO`), where its $N$ residuals at once would carry $N$ copies of
+        an $n \times n$ metric past `SEQUENTIAL_BYTES`."""
         n = (u.shape[0] + data.reduced.signs.shape[0]) // 2
         return u.shape[0] <= COLUMNWISE_UP_TO and u.shape[0] * n * n * u.dtype.itemsize > SEQUENTIAL_BYTES
 

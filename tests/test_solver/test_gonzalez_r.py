@@ -191,6 +191,28 @@ def test_the_exact_chord_matrix_finds_the_same_steps_in_fewer_iterations():
     assert not exact_by_default(nh.GonzalezR(), gearbox, gearbox.start("canonical"))
 
 
+@pytest.mark.parametrize("case", ["Euler's disk", "5 trailers"])
+def test_the_exact_chord_matrix_is_the_residuals_jacobian(case):
+    """`exact_chord_matrix=True`'s matrix, by forward differences of the simplified
+    residual (a column at a time for Euler's disk, N = 8; batched for a tractor with 5
+    trailers, N = 10), is that residual's Jacobian by `jax.jacfwd` to 1e-6 of its
+    size, at the first step's guess."""
+    if case == "Euler's disk":
+        example = nh.examples.rolling_disk_3d()
+        system, y0, h = example.canonical, example.initial_state(), 0.01
+    else:
+        example = nh.examples.tractor_trailers(5)
+        system, y0, h = example.canonical, example.initial_state(), 0.1
+    method = nh.GonzalezR(exact_chord_matrix=True)
+    carry = method.initial_carry(system, y0, example.args)
+    guess, data = method.setup(system, 0.0, h, y0, example.args, carry)
+    assert method._columnwise(guess, data) == (case == "Euler's disk")
+    differenced = eqx.filter_jit(method.chord_jacobian)(guess, data)
+    exact = eqx.filter_jit(jax.jacfwd(method.simplified_residual))(guess, data)
+    error = float(jnp.max(jnp.abs(differenced - exact)))
+    assert error <= 1e-6 * float(jnp.max(jnp.abs(exact))), error
+
+
 def test_predictor_is_third_order_once_two_steps_are_known_and_of_order_history_plus_one_after_history():
     """The guess of a step against its root: O(h^2) at the first step (explicit Euler's
     order), O(h^3) once two steps are known (the last mean velocity extrapolated from
