@@ -209,9 +209,10 @@ class NonholonomicSystem(AbstractSystem):
         else:
             position_gradient, v = jax.grad(self.hamiltonian, argnums=(0, 1))(q, p, args)
             _, drift = jax.jvp(lambda x: self.constraints(x, args) @ self.velocity(x, p, args), (q,), (v,))
-            # K a_i is the velocity at the momentum a_i, H being quadratic in p with no
-            # linear term: k gradients, where K itself takes n tangents.
-            ka_t = jax.vmap(lambda row: self.velocity(q, row, args), out_axes=1)(a)
+            # K by n tangents, not the velocities at the k momenta a_i (H quadratic in
+            # p): their vmap inside an ensemble's vmap rounded apart from a single run's,
+            # and a trajectory's iteration counts with it (tests/test_ensemble.py).
+            ka_t = self.inverse_metric(q, args) @ a.T
         force = -position_gradient
         applied = self.applied_force(t, q, p, args, velocity=v)
         if applied is not None:
