@@ -59,8 +59,8 @@ class LegendreHamiltonian(eqx.Module):
         return eqx.filter_jit(_legendre_transform)(self, q, p, args)
 
     def velocity_and_value(self, q, p, args) -> tuple[Float[Array, " n"], Float[Array, ""]]:
-        r"""$\dot q = M(q)^{-1}p$ and $H(q, p)$."""
-        velocity = solve_spd(self.mass_matrix(q, args), p)
+        r"""$\dot q = M(q)^{-1}p$ (`_legendre_velocity`) and $H(q, p)$."""
+        velocity = _legendre_velocity(self, q, p, args)
         return velocity, 0.5 * p @ velocity - self.lagrangian(q, jnp.zeros_like(q), args)
 
     def index_one_terms(
@@ -93,6 +93,12 @@ class LegendreHamiltonian(eqx.Module):
         )[1]
         return velocity, k_rows, position_gradient, -k_rows.T @ momentum_turn
 
+    def at_position(self, q: Float[Array, " n"], args: Any) -> "LegendreAtPosition":
+        r"""$p \mapsto H(q, p)$ at this one $q$, with $M(q)^{-1}$ formed once
+        (`LegendreAtPosition`)."""
+        mass = self.mass_matrix(q, args)
+        return LegendreAtPosition(self, q, args, solve_spd(mass, jnp.eye(q.shape[0], dtype=mass.dtype)))
+
     def is_mechanical(
         self, q: Float[Array, " n"], velocity: Float[Array, " n"], args: Any, tolerance: Callable
     ) -> Bool[Array, ""]:
@@ -102,6 +108,25 @@ class LegendreHamiltonian(eqx.Module):
         return is_quadratic_form(
             lambda u: self.lagrangian(q, u, args), self.mass_matrix(q, args), velocity, tolerance
         )
+
+
+class LegendreAtPosition(eqx.Module):
+    r"""The momentum derivatives of $H$ at one position $q$, for a method that evaluates
+    them there at several momenta (SI-DLA's kick at $q_{1/2}$): $v = M(q)^{-1}p$ with
+    the inverse formed once, and $\partial_qH(q, p) = -\partial_qL(q, v)$ (the envelope
+    theorem, `_legendre_transform_jvp`), one reverse pass of $L$ per momentum where
+    each evaluation of $\partial_qH$ would form $M(q)$ again."""
+
+    hamiltonian: LegendreHamiltonian
+    q: Float[Array, " n"]
+    args: Any
+    inverse_mass: Float[Array, "n n"]
+
+    def velocity(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
+        return self.inverse_mass @ p
+
+    def position_gradient(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
+        return -jax.grad(self.hamiltonian.lagrangian, argnums=0)(self.q, self.velocity(p), self.args)
 
 
 @eqx.filter_custom_jvp
@@ -122,13 +147,7 @@ def _legendre_transform_jvp(primals, tangents):
     hamiltonian, q, p, args = primals
     _, q_dot, p_dot, args_dot = tangents
     velocity, value = hamiltonian.velocity_and_value(q, p, args)
-    q_dot = jnp.zeros_like(q) if q_dot is None else q_dot
-    if args_dot is None:  # no parameter differentiated
-        args_dot = jax.tree.map(lambda _: None, args)
-    args_dot = jax.tree.map(
-        lambda leaf, t: t if t is not None else (jnp.zeros_like(leaf) if eqx.is_inexact_array(leaf) else None),
-        args, args_dot, is_leaf=lambda t: t is None,
-    )
+    q_dot, args_dot = _position_and_parameter_tangents(q, q_dot, args, args_dot)
     _, lagrangian_dot = eqx.filter_jvp(
         lambda q_, args_: hamiltonian.lagrangian(q_, velocity, args_), (q, args), (q_dot, args_dot)
     )
@@ -138,3 +157,50 @@ def _legendre_transform_jvp(primals, tangents):
     if p_dot is not None:
         value_dot = value_dot + velocity @ p_dot
     return value, value_dot
+
+
+def _position_and_parameter_tangents(q, q_dot, args, args_dot):
+    """The tangents of `q` and of `args` in a custom JVP, zeros where none is given
+    (`None`: not differentiated), so that one `jax.jvp` of $L$ serves."""
+    q_dot = jnp.zeros_like(q) if q_dot is None else q_dot
+    if args_dot is None:  # no parameter differentiated
+        args_dot = jax.tree.map(lambda _: None, args)
+    args_dot = jax.tree.map(
+        lambda leaf, t: t if t is not None else (jnp.zeros_like(leaf) if eqx.is_inexact_array(leaf) else None),
+        args, args_dot, is_leaf=lambda t: t is None,
+    )
+    return q_dot, args_dot
+
+
+@eqx.filter_custom_jvp
+def _legendre_velocity(hamiltonian: LegendreHamiltonian, q, p, args):
+    return solve_spd(hamiltonian.mass_matrix(q, args), p)
+
+
+@_legendre_velocity.def_jvp
+def _legendre_velocity_jvp(primals, tangents):
+    r"""$d\dot q = M^{-1}\big(dp - \partial_{(q,\text{args})}(\partial L/\partial\dot q)
+    (q, \dot q)[dq, d\text{args}]\big)$ at $\dot q = M(q)^{-1}p$: the differential of
+    $p = \partial L/\partial\dot q(q, \dot q)$, whose derivative in $\dot q$ is $M(q)$
+    for $L$ of mechanical type. One forward-over-reverse pass of $L$ and a solve with
+    the $M$ already formed, where autodiff of the solve would differentiate the
+    formation of $M$ (its $n$ columns, each a second derivative of $L$), which every
+    second derivative of $H$ (a chord matrix) would otherwise do."""
+    hamiltonian, q, p, args = primals
+    _, q_dot, p_dot, args_dot = tangents
+    mass = hamiltonian.mass_matrix(q, args)
+    velocity = solve_spd(mass, p)
+    if q_dot is None and all(t is None for t in jax.tree.leaves(args_dot, is_leaf=lambda t: t is None)):
+        # Only p varies (K = dv/dp): no pass of L.
+        momentum_dot = None
+    else:
+        q_dot, args_dot = _position_and_parameter_tangents(q, q_dot, args, args_dot)
+        momentum_of = jax.grad(hamiltonian.lagrangian, argnums=1)
+        _, momentum_dot = eqx.filter_jvp(
+            lambda q_, args_: momentum_of(q_, velocity, args_), (q, args), (q_dot, args_dot)
+        )
+    # None also where the momentum depends on neither q nor a differentiable parameter
+    # (a constant metric with its masses as numbers).
+    momentum_dot = jnp.zeros_like(p) if momentum_dot is None else momentum_dot
+    rhs = -momentum_dot if p_dot is None else p_dot - momentum_dot
+    return velocity, solve_spd(mass, rhs)

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._lagrangian import Lagrangian, LegendreHamiltonian
+from ._lagrangian import Lagrangian, LegendreAtPosition, LegendreHamiltonian
 from ._linalg import is_quadratic_form, solve_spd
 from ._householder import HouseholderFrame, householder_frame_operator, householder_pivots, householder_signs
 from ._results import RESULTS, first_failure
@@ -37,6 +37,21 @@ _CHECK_TOLERANCE = 1000
 
 def _tolerance(dtype, scale):
     return _CHECK_TOLERANCE * jnp.finfo(dtype).eps * (1 + scale)
+
+
+class HamiltonianAtPosition(eqx.Module):
+    r"""$p \mapsto H(q, p)$ at one position, for a Hamiltonian given as such: its
+    derivatives by autodiff of $H$ (`NonholonomicSystem.at_position`)."""
+
+    hamiltonian: Callable
+    q: Float[Array, " n"]
+    args: Any
+
+    def velocity(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
+        return jax.grad(self.hamiltonian, argnums=1)(self.q, p, self.args)
+
+    def position_gradient(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
+        return jax.grad(self.hamiltonian, argnums=0)(self.q, p, self.args)
 
 
 class _InVelocities(eqx.Module):
@@ -173,6 +188,15 @@ class NonholonomicSystem(AbstractSystem):
     def velocity(self, q, p, args) -> Float[Array, " n"]:
         """$v = \\partial H/\\partial p$."""
         return jax.grad(self.hamiltonian, argnums=1)(q, p, args)
+
+    def at_position(self, q, args) -> "HamiltonianAtPosition | LegendreAtPosition":
+        r"""$p \mapsto H(q, p)$ at one position: `.velocity(p)` $= \partial_pH(q, p)$ and
+        `.position_gradient(p)` $= \partial_qH(q, p)$, with what depends on $q$ alone
+        formed once where the system's form allows (from its Lagrangian, $M(q)^{-1}$:
+        `nhjax._lagrangian.LegendreAtPosition`)."""
+        if isinstance(self.hamiltonian, LegendreHamiltonian):
+            return self.hamiltonian.at_position(q, args)
+        return HamiltonianAtPosition(self.hamiltonian, q, args)
 
     def inverse_metric(self, q, args) -> Float[Array, "n n"]:
         """$K(q) = M(q)^{-1} = \\partial^2 H/\\partial p^2$."""

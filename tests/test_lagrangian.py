@@ -38,7 +38,9 @@ def test_the_legendre_transforms_derivatives_are_those_of_the_examples_hamiltoni
     """The Legendre transform's derivatives come from first derivatives of L at the
     velocity (the envelope theorem); those of the hand-written H by autodiff through it:
     gradients in q, p and the parameters, second derivatives in (q, p) and the mixed
-    one of the parameters, at random states."""
+    ones in the parameters, at random states. The second derivatives of the Legendre
+    transform differentiate its velocity M^-1 p by a rule of its own
+    (`nhjax._lagrangian._legendre_velocity`)."""
     example = nh.examples.rolling_disk_3d() if name == "Euler's disk" else EXAMPLES[name]
     given, derived = example.canonical.hamiltonian, example.canonical_from_lagrangian.hamiltonian
     n = example.constraints(jnp.zeros(5), example.args).shape[1] if name == "Euler's disk" else STARTS[name][1][0].shape[0]
@@ -51,7 +53,7 @@ def test_the_legendre_transforms_derivatives_are_those_of_the_examples_hamiltoni
     def derivatives(hamiltonian):
         gradient = jax.grad(hamiltonian, (0, 1, *parameters))
         hessian = jax.jacfwd(jax.grad(hamiltonian, (0, 1)), (0, 1))
-        mixed = jax.jacrev(jax.grad(hamiltonian, 0), parameters) if parameters else (lambda *_: ())
+        mixed = jax.jacrev(jax.grad(hamiltonian, (0, 1)), parameters) if parameters else (lambda *_: ())
         return jax.jit(jax.vmap(lambda q, p: (gradient(q, p, args), hessian(q, p, args), mixed(q, p, args))))(qs, ps)
 
     expected = jax.tree.leaves(derivatives(given))

@@ -32,6 +32,7 @@ class _StepData(eqx.Module):
     p_unit: Any
     v_unit: Any
     force_half: Any
+    at_half: Any
     constant_metric: bool = eqx.field(static=True)
     kick: Any = None
     q0: Any = None
@@ -148,7 +149,8 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
         v_unit = lax.stop_gradient(jnp.max(1 + jnp.abs(v0)))
         # The multiplier for the normalised constraint matrix A / a_unit is a_unit lambda.
         impulse_guess = h * a_unit * carry / p_unit
-        force_half = jax.grad(system.hamiltonian)(q_half, p0, args)
+        at_half = system.at_position(q_half, args)
+        force_half = at_half.position_gradient(p0)
         common = dict(
             system=system,
             args=args,
@@ -159,13 +161,14 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
             p_unit=p_unit,
             v_unit=v_unit,
             force_half=force_half,
+            at_half=at_half,
         )
         if self.metric_is_constant(system, y0, args) and not system.is_forced():
             return impulse_guess, _StepData(**common, constant_metric=True, kick=p0 - h * force_half)
         q_scale = increment_scale(q0)
         # The constant-metric formulas as the predictor: O(h^3) from the root.
         p1 = p0 - h * force_half + common["a_half"].T @ (p_unit * impulse_guess)
-        q1 = q_half + 0.5 * h * system.velocity(q_half, p1, args)
+        q1 = q_half + 0.5 * h * at_half.velocity(p1)
         guess = jnp.concatenate([(q1 - q0) / q_scale, (p1 - p0) / p_scale, impulse_guess])
         data = _StepData(
             **common,
@@ -182,7 +185,7 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
     def _constant_metric_state(self, u, data: _StepData):
         """$(q_1, p_1)$ from the scaled impulse on the $k$-unknown path."""
         p1 = data.kick + data.a_half.T @ (data.p_unit * u)
-        v1 = data.system.velocity(data.q_half, p1, data.args)
+        v1 = data.at_half.velocity(p1)
         return data.q_half + 0.5 * data.h * v1, p1, v1
 
     def _split(self, u, data: _StepData):
@@ -202,7 +205,7 @@ class SIDLA(AbstractSymmetricSecondOrderMethod):
         system, args, h = data.system, data.args, data.h
         q1, p1, impulse = self._split(u, data)
         v1 = system.velocity(q1, p1, args)
-        force = data.force_half + jax.grad(system.hamiltonian)(data.q_half, p1, args)
+        force = data.force_half + data.at_half.position_gradient(p1)
         position = (data.q_half - data.q0 + 0.5 * h * v1) / data.q_scale
         kick = -0.5 * h * force + data.a_half.T @ (data.p_unit * impulse)
         if system.is_forced():
