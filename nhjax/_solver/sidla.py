@@ -5,7 +5,6 @@ comparison method of §4.1."""
 from typing import Any, ClassVar
 
 import equinox as eqx
-import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
