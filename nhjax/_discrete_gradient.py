@@ -132,6 +132,8 @@ def gonzalez(
     x: Float[Array, " N"],
     x1: Float[Array, " N"],
     args: Any = None,
+    *,
+    f_x: Float[Array, ""] | None = None,
 ) -> Float[Array, " N"]:
     r"""Midpoint (Gonzalez) discrete gradient, eq. (gonzales):
 
@@ -166,8 +168,11 @@ def gonzalez(
     equal points (under `vmap` a batch evaluates both, as a select would; the methods'
     root finds, which never differentiate, use `gonzalez_values`, which keeps the
     quadrature to the steps where some trajectory needs it).
+
+    `f_x`: $f(x)$, where the caller has it (a method's residual, evaluated at many $x'$
+    from one $x$, computes it once a step), else computed here.
     """
-    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args)
+    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, f_x=f_x)
 
 
 def midpoint_gradient(
@@ -175,11 +180,15 @@ def midpoint_gradient(
     x: Float[Array, " N"],
     x1: Float[Array, " N"],
     args: Any = None,
+    *,
+    f_x: Float[Array, ""] | None = None,
 ) -> Float[Array, " N"]:
     r"""$\nabla f(\tfrac{x + x'}{2})$: the Gonzalez discrete gradient without its
     correction term. Not a discrete gradient ((discGradEn) fails at $O(|\delta|^3)$);
     a method's simplified residual uses it for the chord matrix (see
-    `nhjax._solver.chord`)."""
+    `nhjax._solver.chord`). `f_x` is not used: taken so that a method calls the
+    three forms alike."""
+    del f_x
     return jax.grad(f)(0.5 * (x + x1), args)
 
 
@@ -188,13 +197,15 @@ def gonzalez_values(
     x: Float[Array, " N"],
     x1: Float[Array, " N"],
     args: Any = None,
+    *,
+    f_x: Float[Array, ""] | None = None,
 ) -> Float[Array, " N"]:
     r"""The values of `gonzalez`, for a caller that never differentiates them (the
     chord iteration's residual, `nhjax.AbstractMethod.root_find_residual`): the same
     forms on the same sides of the switch, with the quadrature selected by `rarely`, so
     that under `vmap` a batch evaluates it only at the calls where some trajectory has
-    nearly equal points. Not differentiable."""
-    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, branch="rarely")
+    nearly equal points. Not differentiable. `f_x` as for `gonzalez`."""
+    return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, branch="rarely", f_x=f_x)
 
 
 def segment_difference(

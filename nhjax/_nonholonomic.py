@@ -258,8 +258,12 @@ class NonholonomicSystem(AbstractSystem):
         return applied
 
     def field(self, t, y, args):
+        return self.field_and_multiplier(t, y, args)[0]
+
+    def field_and_multiplier(self, t, y, args) -> tuple[tuple[Array, Array], Array]:
+        """`field` and `multiplier` from one evaluation (a method's predictor needs both)."""
         v, force, multiplier, a = self._index_one(t, y, args)
-        return v, force + a.T @ multiplier
+        return (v, force + a.T @ multiplier), multiplier
 
     def power(self, t, y, args):
         q, p = y

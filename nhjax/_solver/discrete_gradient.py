@@ -39,8 +39,9 @@ def _underlying(function):
 
 class _StepData(NamedTuple):
     """What the residual of one step needs (`DiscreteGradient.setup`): the start $x$,
-    the step $h$, the scale $s$ of the unknowns $u = (x' - x)/s$, and the time of the
-    step's midpoint, at which a force is evaluated."""
+    the step $h$, the scale $s$ of the unknowns $u = (x' - x)/s$, the time of the
+    step's midpoint, at which a force is evaluated, and for `nhjax.gonzalez` $H(x)$,
+    which its every iterate needs (`None` otherwise)."""
 
     system: SkewGradientSystem
     x: Any
@@ -48,6 +49,7 @@ class _StepData(NamedTuple):
     scale: Any
     args: Any
     midpoint_time: Any
+    energy: Any = None
 
 
 class DiscreteGradient(AbstractMethod):
@@ -144,13 +146,16 @@ class DiscreteGradient(AbstractMethod):
         scale = increment_scale(y0)
         midpoint_time = t + 0.5 * h
         guess = h * system.vf(midpoint_time, y0, args) / scale
-        return guess, _StepData(system, y0, h, scale, args, midpoint_time)
+        energy = system.hamiltonian(y0, args) if self.discrete_gradient is gonzalez else None
+        return guess, _StepData(system, y0, h, scale, args, midpoint_time, energy)
 
     def _equations(self, u, data, discrete_gradient=None):
         """The step's right-hand side $(x' - x)/h$, and its exchange (`exchange`)."""
         system, x, args = data.system, data.x, data.args
         x1 = x + data.scale * u
         discrete_gradient = self.discrete_gradient if discrete_gradient is None else discrete_gradient
+        if discrete_gradient in (gonzalez, gonzalez_values):  # H(x) once a step, not at every iterate
+            discrete_gradient = functools.partial(discrete_gradient, f_x=data.energy)
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
         field = structure @ gradient

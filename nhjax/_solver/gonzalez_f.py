@@ -21,10 +21,12 @@ from .base import (
 
 class _StepData(NamedTuple):
     """What the residual of one step needs (`GonzalezF.setup`): $z = (q, p)$ at the
-    start, the step, the scale of the unknowns and the unit of the constraint rows."""
+    start and $H(z)$, the step, the scale of the unknowns and the unit of the
+    constraint rows."""
 
     system: NonholonomicSystem
     z: Any
+    energy: Any
     h: Any
     scale: Any
     constraint_unit: Any
@@ -125,14 +127,13 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
         z = jnp.concatenate([q, p])
         scale = increment_scale(z)
         midpoint_time = t + 0.5 * h
-        velocity, acceleration = system.vf(midpoint_time, y0, args)
-        guess = jnp.concatenate(
-            [h * jnp.concatenate([velocity, acceleration]) / scale, h * system.multiplier(y0, args, midpoint_time)]
-        )
+        (velocity, acceleration), multiplier = system.field_and_multiplier(midpoint_time, y0, args)
+        guess = jnp.concatenate([h * jnp.concatenate([velocity, acceleration]) / scale, h * multiplier])
         constraint_unit = positive_unit(
             jnp.max(jnp.abs(system.constraints(q, args))) * jnp.max(1 + jnp.abs(velocity))
         )
-        return guess, _StepData(system, z, h, scale, constraint_unit, args, midpoint_time)
+        energy = system.hamiltonian(q, p, args)
+        return guess, _StepData(system, z, energy, h, scale, constraint_unit, args, midpoint_time)
 
     def _equations(self, unknowns, data, discrete_gradient=gonzalez):
         """The residual, and the step's exchange (`exchange`)."""
@@ -142,7 +143,8 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
         u, impulse = unknowns[:n2], unknowns[n2:]
         z1 = z + scale * u
         hamiltonian = lambda x, args: system.hamiltonian(x[:n], x[n:], args)  # noqa: E731
-        gradient = discrete_gradient(hamiltonian, z, z1, args)
+        # H(z) once a step, not at every iterate (for a Lagrangian, a formation of M).
+        gradient = discrete_gradient(hamiltonian, z, z1, args, f_x=data.energy)
         a = system.constraints(0.5 * (z[:n] + z1[:n]), args)
         flow = jnp.concatenate([gradient[n:], -gradient[:n]])
         force = jnp.concatenate([jnp.zeros((n,), z.dtype), a.T @ impulse])
