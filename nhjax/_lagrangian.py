@@ -97,7 +97,7 @@ class LegendreHamiltonian(eqx.Module):
         r"""$p \mapsto H(q, p)$ at this one $q$, with $M(q)^{-1}$ formed once
         (`LegendreAtPosition`)."""
         mass = self.mass_matrix(q, args)
-        return LegendreAtPosition(self, q, args, solve_spd(mass, jnp.eye(q.shape[0], dtype=mass.dtype)))
+        return LegendreAtPosition(self, q, args, mass, solve_spd(mass, jnp.eye(q.shape[0], dtype=mass.dtype)))
 
     def is_mechanical(
         self, q: Float[Array, " n"], velocity: Float[Array, " n"], args: Any, tolerance: Callable
@@ -111,19 +111,27 @@ class LegendreHamiltonian(eqx.Module):
 
 
 class LegendreAtPosition(eqx.Module):
-    r"""The momentum derivatives of $H$ at one position $q$, for a method that evaluates
-    them there at several momenta (SI-DLA's kick at $q_{1/2}$): $v = M(q)^{-1}p$ with
-    the inverse formed once, and $\partial_qH(q, p) = -\partial_qL(q, v)$ (the envelope
-    theorem, `_legendre_transform_jvp`), one reverse pass of $L$ per momentum where
-    each evaluation of $\partial_qH$ would form $M(q)$ again."""
+    r"""$H$ at one position $q$, for a method that evaluates it there at several momenta
+    or velocities (SI-DLA's kick at $q_{1/2}$, I-DLA's discrete Lagrangian at the
+    midpoint): $M(q)$ and $K = M(q)^{-1}$ formed once, $v = Kp$, $p = Mv$, and
+    $\partial_qH(q, p) = -\partial_qL(q, Kp)$ (the envelope theorem,
+    `_legendre_transform_jvp`), one reverse pass of $L$ where each evaluation of
+    $\partial_qH$ would form $M(q)$ again."""
 
     hamiltonian: LegendreHamiltonian
     q: Float[Array, " n"]
     args: Any
+    mass: Float[Array, "n n"]
     inverse_mass: Float[Array, "n n"]
+
+    def inverse_metric(self) -> Float[Array, "n n"]:
+        return self.inverse_mass
 
     def velocity(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
         return self.inverse_mass @ p
+
+    def momentum(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
+        return self.mass @ v
 
     def position_gradient(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
         return -jax.grad(self.hamiltonian.lagrangian, argnums=0)(self.q, self.velocity(p), self.args)

@@ -47,8 +47,15 @@ class HamiltonianAtPosition(eqx.Module):
     q: Float[Array, " n"]
     args: Any
 
+    def inverse_metric(self) -> Float[Array, "n n"]:
+        return jax.jacfwd(self.velocity)(jnp.zeros_like(self.q))
+
     def velocity(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
         return jax.grad(self.hamiltonian, argnums=1)(self.q, p, self.args)
+
+    def momentum(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
+        """$M v$, by a solve with $K$."""
+        return solve_spd(self.inverse_metric(), v)
 
     def position_gradient(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
         return jax.grad(self.hamiltonian, argnums=0)(self.q, p, self.args)
@@ -190,8 +197,9 @@ class NonholonomicSystem(AbstractSystem):
         return jax.grad(self.hamiltonian, argnums=1)(q, p, args)
 
     def at_position(self, q, args) -> "HamiltonianAtPosition | LegendreAtPosition":
-        r"""$p \mapsto H(q, p)$ at one position: `.velocity(p)` $= \partial_pH(q, p)$ and
-        `.position_gradient(p)` $= \partial_qH(q, p)$, with what depends on $q$ alone
+        r"""$p \mapsto H(q, p)$ at one position: `.velocity(p)` $= \partial_pH(q, p)$,
+        `.position_gradient(p)` $= \partial_qH(q, p)$, `.inverse_metric()` $= K(q)$ and
+        `.momentum(v)` $= M(q)v$, with what depends on $q$ alone
         formed once where the system's form allows (from its Lagrangian, $M(q)^{-1}$:
         `nhjax._lagrangian.LegendreAtPosition`)."""
         if isinstance(self.hamiltonian, LegendreHamiltonian):

@@ -3,12 +3,10 @@ midpoint discrete Lagrangian, the second comparison method of §4.1."""
 
 from typing import Any, ClassVar, Literal, NamedTuple
 
-import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._linalg import solve_spd
 from .._nonholonomic import NonholonomicSystem
 from .base import all_finite, AbstractSymmetricSecondOrderMethod, increment_scale, positive_unit, resolution_of
 
@@ -174,8 +172,9 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
         # error (its Jacobian is frozen there), so this saves iterations twice over.
         q_half = q0 + 0.5 * h * v0
         a_half = system.constraints(q_half, args) / a_unit
-        p1 = p0 - h * jax.grad(system.hamiltonian)(q_half, p0, args) + a_half.T @ impulse
-        q1 = q_half + 0.5 * h * system.velocity(q_half, p1, args)
+        at_half = system.at_position(q_half, args)
+        p1 = p0 - h * at_half.position_gradient(p0) + a_half.T @ impulse
+        q1 = q_half + 0.5 * h * at_half.velocity(p1)
         guess = jnp.concatenate([(q1 - q0) / q_scale, impulse / p_unit])
         return guess, _StepData(system, args, h, q0, p0, q_scale, a_unit, a0, p_unit, v_unit, t + 0.5 * h)
 
@@ -190,9 +189,11 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
         q1 = data.q0 + increment
         q_mid = data.q0 + 0.5 * increment
         mean_velocity = increment / h
-        inverse = system.inverse_metric(q_mid, args)
-        mean_momentum = solve_spd(inverse, mean_velocity)
-        force = -jax.grad(system.hamiltonian)(q_mid, mean_momentum, args)
+        # M(q_mid) and its inverse once per iterate (`NonholonomicSystem.at_position`).
+        at_mid = system.at_position(q_mid, args)
+        inverse = at_mid.inverse_metric()
+        mean_momentum = at_mid.momentum(mean_velocity)
+        force = -at_mid.position_gradient(mean_momentum)
         if system.is_forced():
             force = force + system.applied_force(data.midpoint_time, q_mid, mean_momentum, args, mean_velocity)
         if self.constraint_force == "endpoints":
@@ -220,7 +221,7 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
         mean velocity (see the class docstring)."""
         _, _, q_mid, mean_velocity, _ = self._equations(u, data)
         system, args = data.system, data.args
-        mean_momentum = solve_spd(system.inverse_metric(q_mid, args), mean_velocity)
+        mean_momentum = system.at_position(q_mid, args).momentum(mean_velocity)
         supplied, dissipated = system.power_along(data.midpoint_time, q_mid, mean_momentum, mean_velocity, args)
         return data.h * supplied, data.h * dissipated
 
