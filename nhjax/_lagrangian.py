@@ -130,7 +130,9 @@ class LegendreAtPosition(eqx.Module):
     def velocity(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
         return self.inverse_mass @ p
 
-    def momentum(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
+    def momentum(self, v: Float[Array, " n"], inverse_metric: Float[Array, "n n"] | None = None) -> Float[Array, " n"]:
+        """$M v$ (`inverse_metric` is not needed: $M$ is kept)."""
+        del inverse_metric
         return self.mass @ v
 
     def position_gradient(self, p: Float[Array, " n"]) -> Float[Array, " n"]:

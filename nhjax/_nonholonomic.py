@@ -53,9 +53,9 @@ class HamiltonianAtPosition(eqx.Module):
     def velocity(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
         return jax.grad(self.hamiltonian, argnums=1)(self.q, p, self.args)
 
-    def momentum(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
-        """$M v$, by a solve with $K$."""
-        return solve_spd(self.inverse_metric(), v)
+    def momentum(self, v: Float[Array, " n"], inverse_metric: Float[Array, "n n"] | None = None) -> Float[Array, " n"]:
+        """$M v$, by a solve with $K$ (`inverse_metric`, where the caller has formed it)."""
+        return solve_spd(self.inverse_metric() if inverse_metric is None else inverse_metric, v)
 
     def position_gradient(self, p: Float[Array, " n"]) -> Float[Array, " n"]:
         return jax.grad(self.hamiltonian, argnums=0)(self.q, p, self.args)

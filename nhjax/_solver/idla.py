@@ -192,7 +192,7 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
         # M(q_mid) and its inverse once per iterate (`NonholonomicSystem.at_position`).
         at_mid = system.at_position(q_mid, args)
         inverse = at_mid.inverse_metric()
-        mean_momentum = at_mid.momentum(mean_velocity)
+        mean_momentum = at_mid.momentum(mean_velocity, inverse)
         force = -at_mid.position_gradient(mean_momentum)
         if system.is_forced():
             force = force + system.applied_force(data.midpoint_time, q_mid, mean_momentum, args, mean_velocity)
