@@ -97,6 +97,45 @@ def test_the_index_one_field_of_both_forms_agrees(name):
     assert min(float(jnp.max(jnp.abs(leaf))) for leaf in expected) > 0.1  # not trivially zero
 
 
+@pytest.mark.parametrize("name", ["sleigh, q-dependent M", "Euler's disk"])
+def test_h_at_one_position_is_the_same_from_either_form(name):
+    """`at_position`, which from a Lagrangian forms M(q) and its inverse once and from H
+    differentiates H: the velocity, dH/dq, K and M v agree between the two forms (and
+    with the system's own velocity), M v inverts the velocity, and derivatives through
+    them in q and p agree too."""
+    if name == "Euler's disk":
+        example = nh.examples.rolling_disk_3d()
+        n = 5
+    else:
+        example = EXAMPLES[name]
+        n = STARTS[name][1][0].shape[0]
+    keys = jax.random.split(jax.random.key(6), 2)
+    qs, ps = (0.5 * jax.random.normal(key, (4, n)) for key in keys)
+
+    def evaluations(system):
+        def at(q, p):
+            point = system.at_position(q, example.args)
+            v = point.velocity(p)
+            return dict(
+                velocity=v,
+                position_gradient=point.position_gradient(p),
+                inverse_metric=point.inverse_metric(),
+                round_trip=point.momentum(v),
+                system_velocity=system.velocity(q, p, example.args),
+            )
+
+        derivative = jax.jacfwd(lambda q, p: at(q, p)["position_gradient"], (0, 1))
+        return jax.jit(jax.vmap(lambda q, p: (at(q, p), derivative(q, p))))(qs, ps)
+
+    given, derived = evaluations(example.canonical), evaluations(example.canonical_from_lagrangian)
+    for got, want in zip(jax.tree.leaves(derived), jax.tree.leaves(given), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-11, atol=1e-11 * (1 + float(jnp.max(jnp.abs(want)))))
+    for values, _ in (given, derived):
+        np.testing.assert_allclose(values["round_trip"], ps, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(values["velocity"], values["system_velocity"], rtol=1e-12, atol=1e-12)
+    assert float(jnp.max(jnp.abs(given[0]["position_gradient"]))) > 1e-3  # the metric depends on q
+
+
 def test_the_momentum_of_a_velocity_is_the_lagrangians_derivative():
     """p = M(q) qdot against dL/dqdot by autodiff of the Lagrangian itself, on the
     sleigh (q-dependent M); for a velocity on the constraint, p is on it too."""
