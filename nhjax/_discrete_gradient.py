@@ -29,6 +29,7 @@ exactly, with finite and accurate derivatives.
 """
 
 import math
+import functools
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -180,15 +181,11 @@ def midpoint_gradient(
     x: Float[Array, " N"],
     x1: Float[Array, " N"],
     args: Any = None,
-    *,
-    f_x: Float[Array, ""] | None = None,
 ) -> Float[Array, " N"]:
     r"""$\nabla f(\tfrac{x + x'}{2})$: the Gonzalez discrete gradient without its
     correction term. Not a discrete gradient ((discGradEn) fails at $O(|\delta|^3)$);
     a method's simplified residual uses it for the chord matrix (see
-    `nhjax._solver.chord`). `f_x` is not used: taken so that a method calls the
-    three forms alike."""
-    del f_x
+    `nhjax._solver.chord`)."""
     return jax.grad(f)(0.5 * (x + x1), args)
 
 
@@ -206,6 +203,15 @@ def gonzalez_values(
     that under `vmap` a batch evaluates it only at the calls where some trajectory has
     nearly equal points. Not differentiable. `f_x` as for `gonzalez`."""
     return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, branch="rarely", f_x=f_x)
+
+
+def with_start_value(discrete_gradient: Callable, f_x: Float[Array, ""] | None) -> Callable:
+    """`discrete_gradient` with $f(x)$ given (`f_x`) where it is `gonzalez` or
+    `gonzalez_values`, which take it; any other discrete gradient unchanged. A method's
+    residual, evaluated at many $x'$ from one $x$, computes $f(x)$ once a step."""
+    if discrete_gradient in (gonzalez, gonzalez_values):
+        return functools.partial(discrete_gradient, f_x=f_x)
+    return discrete_gradient
 
 
 def segment_difference(

@@ -12,6 +12,7 @@ from .._discrete_gradient import (
     gonzalez_values,
     itoh_abe,
     midpoint_gradient,
+    with_start_value,
     swap_arguments,
     SwappedArguments,
 )
@@ -154,8 +155,7 @@ class DiscreteGradient(AbstractMethod):
         system, x, args = data.system, data.x, data.args
         x1 = x + data.scale * u
         discrete_gradient = self.discrete_gradient if discrete_gradient is None else discrete_gradient
-        if discrete_gradient in (gonzalez, gonzalez_values):  # H(x) once a step, not at every iterate
-            discrete_gradient = functools.partial(discrete_gradient, f_x=data.energy)
+        discrete_gradient = with_start_value(discrete_gradient, data.energy)
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
         field = structure @ gradient

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient
+from .._discrete_gradient import gonzalez, gonzalez_values, midpoint_gradient, with_start_value
 from .._nonholonomic import NonholonomicSystem
 from .base import (
     AbstractSymmetricSecondOrderMethod,
@@ -144,7 +144,7 @@ class GonzalezF(AbstractSymmetricSecondOrderMethod):
         z1 = z + scale * u
         hamiltonian = lambda x, args: system.hamiltonian(x[:n], x[n:], args)  # noqa: E731
         # H(z) once a step, not at every iterate (for a Lagrangian, a formation of M).
-        gradient = discrete_gradient(hamiltonian, z, z1, args, f_x=data.energy)
+        gradient = with_start_value(discrete_gradient, data.energy)(hamiltonian, z, z1, args)
         a = system.constraints(0.5 * (z[:n] + z1[:n]), args)
         flow = jnp.concatenate([gradient[n:], -gradient[:n]])
         force = jnp.concatenate([jnp.zeros((n,), z.dtype), a.T @ impulse])

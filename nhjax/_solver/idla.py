@@ -180,8 +180,9 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
 
     def _equations(self, u, data: _StepData):
         r"""The scaled position equation's right-hand side, $q_1$, $\bar q$, the mean
-        velocity $w$ and the momentum after the step's forces: $D_2L_d(q_0, q_1)$ plus,
-        for the midpoint form, its half of the constraint impulse ($p_1$ itself)."""
+        velocity $w$, the mean momentum $M(\bar q)w$ (the exchange's) and the momentum
+        after the step's forces: $D_2L_d(q_0, q_1)$ plus, for the midpoint form, its
+        half of the constraint impulse ($p_1$ itself)."""
         system, args, h = data.system, data.args, data.h
         n = data.q0.shape[0]
         increment = data.q_scale * u[:n]
@@ -203,11 +204,11 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
             start_reaction = end_reaction = 0.5 * (system.constraints(q_mid, args) / data.a_unit).T @ impulse
         position = h * inverse @ (data.p0 + 0.5 * h * force + start_reaction) / data.q_scale
         p1 = data.p0 + h * force + start_reaction + end_reaction
-        return position, q1, q_mid, mean_velocity, p1
+        return position, q1, q_mid, mean_velocity, mean_momentum, p1
 
     def residual(self, u, data: _StepData):
         n = data.q0.shape[0]
-        position, q1, q_mid, mean_velocity, p1 = self._equations(u, data)
+        position, q1, q_mid, mean_velocity, _, p1 = self._equations(u, data)
         system, args = data.system, data.args
         if self.constraint_force == "endpoints":
             constraint = system.constraints(q_mid, args) @ mean_velocity / (data.a_unit * data.v_unit)
@@ -219,10 +220,8 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
     def exchange(self, u, data: _StepData):
         r"""$h\,w^TF$ and $h\,w^TDw$ at $(t + \tfrac h2, \bar q, M(\bar q)w)$, $w$ the
         mean velocity (see the class docstring)."""
-        _, _, q_mid, mean_velocity, _ = self._equations(u, data)
-        system, args = data.system, data.args
-        mean_momentum = system.at_position(q_mid, args).momentum(mean_velocity)
-        supplied, dissipated = system.power_along(data.midpoint_time, q_mid, mean_momentum, mean_velocity, args)
+        _, _, q_mid, mean_velocity, mean_momentum, _ = self._equations(u, data)
+        supplied, dissipated = data.system.power_along(data.midpoint_time, q_mid, mean_momentum, mean_velocity, data.args)
         return data.h * supplied, data.h * dissipated
 
     def resolution(self, data: _StepData):
@@ -233,7 +232,7 @@ class IDLA(AbstractSymmetricSecondOrderMethod):
         )
 
     def complete(self, u, data: _StepData):
-        _, q1, _, _, p1 = self._equations(u, data)
+        _, q1, _, _, _, p1 = self._equations(u, data)
         n = q1.shape[0]
         safe_h = jnp.where(data.h == 0, jnp.ones_like(data.h), data.h)
         if self.constraint_force == "endpoints":
