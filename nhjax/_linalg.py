@@ -231,6 +231,16 @@ def inverse(a: Float[Array, "n n"], pivoting: bool = True) -> Float[Array, "n n"
     return right
 
 
+def lapack_inverse(a: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """$a^{-1}$ by LAPACK's LU with partial pivoting at any size, never called on a batch
+    of large matrices (`lapack_unbatched`); a singular `a` gives non-finite entries.
+    For branches that rarely run (`nhjax._rare_branch.rarely`): there the program's
+    size counts, not the call's dispatch, and the library call is a few instructions
+    where `inverse` unrolls $n$ pivot searches and gathers (about 600 instructions of
+    Euler's disk's GONZALEZ-R program, $n = 8$)."""
+    return _lapack_inverse(a)
+
+
 def solve(a: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
     r"""$a^{-1}b$ for a general nonsingular `a`: up to `UNROLL_LIMIT` by the pivoted
     `inverse` times $b$, which reverse mode transposes into a product with the

@@ -15,6 +15,7 @@ from nhjax._linalg import (
     is_accurate_inverse,
     is_diagonally_dominant,
     jacobian_by_differences,
+    lapack_inverse,
     LAPACK_UNBATCHED_FROM,
     product,
     PRODUCT_LIMIT,
@@ -86,6 +87,22 @@ def test_inverse_needs_pivoting_and_reports_singular_matrices():
     swap = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
     np.testing.assert_array_equal(inverse(swap), jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.5]]))
     assert not bool(jnp.all(jnp.isfinite(inverse(jnp.array([[1.0, 2.0], [2.0, 4.0]])))))
+
+
+def test_lapack_inverse_pivots_batches_and_reports_singular_matrices():
+    """The rare branches' inverse: exact where pivoting is needed, non-finite for a
+    singular matrix, and under `vmap` each member's own inverse, below and from
+    `LAPACK_UNBATCHED_FROM` (one call per member there), a singular member spoiling no
+    other."""
+    swap = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    np.testing.assert_array_equal(jax.jit(lapack_inverse)(swap), jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.5]]))
+    assert not bool(jnp.all(jnp.isfinite(lapack_inverse(jnp.array([[1.0, 2.0], [2.0, 4.0]])))))
+    for n in (3, LAPACK_UNBATCHED_FROM):
+        batch = jax.random.normal(jax.random.key(n), (3, n, n)).at[1].set(jnp.ones((n, n)))
+        inverses = jax.jit(jax.vmap(lapack_inverse))(batch)
+        assert not bool(jnp.all(jnp.isfinite(inverses[1])))
+        for i in (0, 2):
+            np.testing.assert_allclose(inverses[i] @ batch[i], jnp.eye(n), atol=1e-10)
 
 
 def test_solve_pivots_and_reports_singular_matrices():

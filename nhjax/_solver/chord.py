@@ -29,6 +29,7 @@ from .._linalg import (
     blocked_product,
     inverse,
     is_accurate_inverse,
+    lapack_inverse,
     is_diagonally_dominant,
     product,
     row_blocks,
@@ -55,8 +56,9 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     inverse $X$ is kept where $\max|JX - I| \le \sqrt\varepsilon$
     (`nhjax._linalg.is_accurate_inverse`), an error that changes the iteration's
     contraction by as little, not its root; a vanishing or tiny pivot (GONZALEZ-F,
-    whose multiplier block has a zero diagonal) fails that test, and the pivoted
-    elimination runs (`benchmarks/composition.py` measures the collocation's steps).
+    whose multiplier block has a zero diagonal) fails that test, and LAPACK's pivoted
+    LU runs (`nhjax._linalg.lapack_inverse`: a branch that rarely runs is better small
+    than fast; `benchmarks/composition.py` measures the collocation's steps).
     Under `vmap` the test and the pivoted elimination
     run only at the steps where some trajectory needs them (`rarely`). Cut from
     differentiation, as the chord matrix is."""
@@ -74,7 +76,7 @@ def _checked_inverse(operands):
 
 
 def _pivoted_inverse(operands):
-    return inverse(operands[0])
+    return lapack_inverse(operands[0])
 
 
 class _ChordState(eqx.Module):
