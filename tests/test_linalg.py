@@ -320,7 +320,8 @@ def test_jacobian_by_differences_is_the_jacobian_to_the_root_of_eps(dtype, toler
     """Forward differences against the Jacobian by autodiff, at a point with entries of
     sizes 1e-3 to 1e4 (the step follows each entry's size): within a few sqrt(eps)
     relative to the Jacobian's size, in float64 and float32, batched and a column at a
-    time; and not equal to it (they are differences)."""
+    time; and not equal to it (they are differences). The function is in the program
+    once (its sine once in the traced graph), its value at x one of the n + 1."""
     def function(x):
         return jnp.stack([jnp.sin(x[0]) * x[1], x[1] ** 2 + jnp.exp(1e-4 * x[2]), x[0] * x[2] * 1e-4, jnp.cos(x[3])])
 
@@ -332,3 +333,5 @@ def test_jacobian_by_differences_is_the_jacobian_to_the_root_of_eps(dtype, toler
     error = float(jnp.max(jnp.abs(differenced - exact)))
     assert error <= tolerance * scale, (error, scale)
     assert error > 0
+    graph = str(jax.make_jaxpr(lambda x: jacobian_by_differences(function, x, one_at_a_time))(x))
+    assert graph.count(" sin ") == 1, graph
