@@ -271,14 +271,17 @@ def _summary(problem_name, runs, exact) -> dict:
 
 def _head_to_head(runs, symmetric_names, target) -> dict | None:
     """The symmetric energy-exact methods against Dopri8 at `target`, timed in turns
-    (`HEAD_TO_HEAD_ROUNDS` rounds of `median_time` each), so that the ratios do not
-    depend on how this machine's load changed between the sweeps. Each method enters
-    with its run of fewest steps that reaches the target, its cheapest by construction
-    (a fixed-step run's cost grows with its steps, an adaptive one's with the steps it
-    takes), so that a noisy sweep cannot pick a dearer run. Returns the medians and
-    each method's ratio to Dopri8's median, the lowest ratio with its method, and for
-    orders 4, 6 and 8 the cheaper collocation's median over the GONZALEZ-R
-    composition's."""
+    (`HEAD_TO_HEAD_ROUNDS` rounds), so that the ratios do not depend on how this
+    machine's load changed between the sweeps: in each round each method is timed
+    right after a timing of Dopri8 (`median_time` of 3 calls each), and its ratio is
+    the median over the rounds of its time over that Dopri8's, a pair timed within
+    milliseconds (a ratio of medians taken across a round of some twenty programs
+    moved by 0.2 to 0.4 from run to run on the same code). Each method enters with its run of
+    fewest steps that reaches the target, its cheapest by construction (a fixed-step
+    run's cost grows with its steps, an adaptive one's with the steps it takes), so
+    that a noisy sweep cannot pick a dearer run. Returns the medians and each method's
+    ratio, the lowest ratio with its method, and for orders 4, 6 and 8 the cheaper
+    collocation's median over the GONZALEZ-R composition's."""
 
     dopri8 = _cheapest(runs["Dopri8 (adaptive)"], target, by="steps")
     candidates = {name: _cheapest(runs[name], target, by="steps") for name in symmetric_names}
@@ -286,12 +289,15 @@ def _head_to_head(runs, symmetric_names, target) -> dict | None:
     if dopri8 is None or not candidates:
         return None
     times = {name: [] for name in ["Dopri8 (adaptive)", *candidates]}
+    paired = {name: [] for name in candidates}
     for _ in range(HEAD_TO_HEAD_ROUNDS):
-        times["Dopri8 (adaptive)"].append(median_time(dopri8[FUNCTION], 3))
         for name, row in candidates.items():
+            yardstick = median_time(dopri8[FUNCTION], 3)
+            times["Dopri8 (adaptive)"].append(yardstick)
             times[name].append(median_time(row[FUNCTION], 3))
+            paired[name].append(times[name][-1] / yardstick)
     medians = {name: statistics.median(values) for name, values in times.items()}
-    ratios = {name: medians[name] / medians["Dopri8 (adaptive)"] for name in candidates}
+    ratios = {name: statistics.median(values) for name, values in paired.items()}
     best = min(ratios, key=ratios.get)
     collocation_over_composition = {}
     for order in (4, 6, 8):
