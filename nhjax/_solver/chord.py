@@ -62,19 +62,26 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     GONZALEZ-F, whose every matrix takes it; `benchmarks/composition.py` measures the
     collocation's steps).
     Under `vmap` the test and the pivoted elimination
-    run only at the steps where some trajectory needs them (`rarely`). Cut from
-    differentiation, as the chord matrix is."""
+    run only at the steps where some trajectory needs them (`rarely`), never for a
+    non-finite matrix (a failed trajectory's). Cut from differentiation, as the chord
+    matrix is."""
     jacobian = lax.stop_gradient(jacobian)
     if jacobian.shape[0] > UNROLL_LIMIT:
         return inverse(jacobian)
     unpivoted = inverse(jacobian, pivoting=False)
-    return rarely(~is_diagonally_dominant(jacobian), _checked_inverse, unpivoted, (jacobian, unpivoted))
+    # A non-finite matrix has no better inverse than the unpivoted one, non-finite too:
+    # a failed trajectory's, in a batch, would otherwise make every step of the batch
+    # take both branches.
+    checked = ~is_diagonally_dominant(jacobian) & jnp.all(jnp.isfinite(jacobian))
+    return rarely(checked, _checked_inverse, unpivoted, (jacobian, unpivoted, checked))
 
 
 def _checked_inverse(operands):
-    """The unpivoted inverse where it is accurate, else the pivoted one."""
-    jacobian, unpivoted = operands
-    return rarely(~is_accurate_inverse(jacobian, unpivoted), _pivoted_inverse, unpivoted, operands)
+    """The unpivoted inverse where it is accurate, else the pivoted one. Under `vmap`
+    this branch runs for the whole batch, so the test is taken only where the matrix
+    was to be checked: a failed trajectory's NaN inverse is not accurate either."""
+    jacobian, unpivoted, checked = operands
+    return rarely(checked & ~is_accurate_inverse(jacobian, unpivoted), _pivoted_inverse, unpivoted, operands)
 
 
 def _pivoted_inverse(operands):

@@ -12,6 +12,7 @@ import pytest
 
 import nhjax as nh
 from nhjax._linalg import inverse, is_diagonally_dominant, SEQUENTIAL_BYTES
+from nhjax._solver import chord
 from nhjax._solver.chord import chord_inverse, ChordSolution, PresetChord, STALL_FACTOR
 
 
@@ -270,6 +271,33 @@ def test_chord_inverse_keeps_an_accurate_unpivoted_inverse_and_pivots_an_inaccur
     np.testing.assert_array_equal(batch[0], jax.jit(jax.vmap(unpivoted))(matrices)[0])
     for a, inverse_of_a in zip(matrices, batch):
         np.testing.assert_allclose(inverse_of_a @ a, jnp.eye(4), atol=1e-14)
+
+
+def test_a_failed_trajectorys_matrix_makes_no_batch_pivot(monkeypatch):
+    """Under `vmap` a rare branch runs for the whole batch when one member takes it. A
+    failed trajectory's NaN chord matrix gets a NaN inverse and makes no step of its
+    batch run the pivoted inverse, where the batch's other matrices are checked and
+    kept unpivoted; a member that needs pivoting still gets it beside a NaN one."""
+    pivoted = []
+    original = chord._pivoted_inverse
+
+    def counted(operands):
+        jax.debug.callback(lambda: pivoted.append(1))
+        return original(operands)
+
+    monkeypatch.setattr(chord, "_pivoted_inverse", counted)
+    moderate = jnp.array([[1.0, 0.9, 0.8], [0.7, 1.0, 0.9], [0.2, 0.8, 1.0]])
+    tiny_pivot = jnp.array([[1e-17, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 2.0]])
+    failed = jnp.full((3, 3), jnp.nan)
+    assert not bool(is_diagonally_dominant(moderate))
+    batch = jax.jit(jax.vmap(chord_inverse))(jnp.stack([moderate, failed]))
+    assert not pivoted
+    np.testing.assert_allclose(batch[0] @ moderate, jnp.eye(3), atol=1e-14)
+    assert not bool(jnp.any(jnp.isfinite(batch[1])))
+    batch = jax.jit(jax.vmap(chord_inverse))(jnp.stack([tiny_pivot, failed]))
+    assert pivoted
+    np.testing.assert_allclose(batch[0] @ tiny_pivot, jnp.eye(3), atol=1e-15)
+    assert not bool(jnp.any(jnp.isfinite(batch[1])))
 
 
 def _computations(hlo: str) -> dict[str, list[str]]:
