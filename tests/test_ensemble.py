@@ -24,13 +24,18 @@ def _max_difference(a, b):
 
 
 def test_one_device_equals_vmap_of_integrate():
+    """The same saves to 1e-13 and the same iterations up to one per trajectory: the
+    sharded program is compiled apart from the vmapped one, and an iteration that ends
+    at the rounding floor can take one more in one of them (at XLA's default
+    optimisation these took 239, 241 and 275 against 239, 240 and 275)."""
     states = _states(3)
     sharded = nh.integrate_ensemble(GEARBOX.canonical, METHOD, states, 0.1, 40, save_every=10)
     reference = jax.vmap(lambda y: nh.integrate(GEARBOX.canonical, METHOD, y, 0.1, 40, save_every=10))(states)
     assert sharded.ys[0].shape == (3, 5, 3)
     assert _max_difference(sharded.ys, reference.ys) <= 1e-13
     assert _max_difference(sharded.energy, reference.energy) <= 1e-13
-    assert jnp.all(sharded.stats["root_find_steps"] == reference.stats["root_find_steps"])
+    assert jnp.all(jnp.abs(sharded.stats["root_find_steps"] - reference.stats["root_find_steps"]) <= 1)
+    assert jnp.all(reference.stats["root_find_steps"] >= 40)
 
 
 def test_compositions_run_as_ensembles_with_their_substep_statistics():

@@ -192,11 +192,13 @@ def test_a_failing_kept_matrix_is_replaced_by_a_fresh_one():
         solution, _, used, memory = kept._chord_solve(root_finder, guess, data, memory)
         np.testing.assert_allclose(jnp.vstack(used), jnp.vstack(inverse), rtol=0, atol=MATRIX_ROUNDING)
         assert int(solution.steps) == int(fresh.steps) and int(memory.formed) == 2 and int(memory.age) == 1
-    # One that serves is used as it is, also for a step size that differs by rounding.
+    # One that serves is used as it is, also for a step size that differs by rounding;
+    # its iteration runs in a loop of its own, rounded apart from the fresh one's.
     for rounded in (key, key * (1 + 4e-16)):
         good = ChordMemory(jacobian, inverse, rounded, fresh.steps, 2 * fresh.steps + 1, one * (KEPT_STEPS - 1), one)
         solution, _, used, memory = kept._chord_solve(root_finder, guess, data, good)
-        np.testing.assert_array_equal(solution.value, fresh.value)
+        np.testing.assert_array_equal(jnp.vstack(used), jnp.vstack(inverse))
+        np.testing.assert_allclose(solution.value, fresh.value, rtol=0, atol=1e-15)
         assert int(memory.formed) == 1 and int(memory.age) == KEPT_STEPS
     # Not for another step size.
     other = ChordMemory(jacobian, inverse, key * 1.01, fresh.steps, fresh.steps, one, one)
