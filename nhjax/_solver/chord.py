@@ -29,8 +29,8 @@ from .._linalg import (
     blocked_product,
     inverse,
     is_accurate_inverse,
-    lapack_inverse,
     is_diagonally_dominant,
+    lapack_inverse,
     product,
     row_blocks,
     UNROLL_LIMIT,
@@ -55,12 +55,13 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     12 and $h = 0.7$ on the quartic, of condition 1.6 to 2.8): there the unpivoted
     inverse $X$ is kept where $\max|JX - I| \le \sqrt\varepsilon$
     (`nhjax._linalg.is_accurate_inverse`), an error that changes the iteration's
-    contraction by as little, not its root; a vanishing or tiny pivot (GONZALEZ-F,
-    whose multiplier block has a zero diagonal) fails that test, and LAPACK's pivoted
-    LU runs (`nhjax._linalg.lapack_inverse`: a few instructions in the program where
-    the unrolled pivoted elimination was some 600 at $n = 8$, and as fast for
-    GONZALEZ-F, whose every matrix takes it; `benchmarks/composition.py` measures the
-    collocation's steps).
+    contraction by as little, not its root; a vanishing or tiny pivot fails that
+    test, and LAPACK's pivoted LU runs (`nhjax._linalg.lapack_inverse`: a few
+    instructions in the program where the unrolled pivoted elimination was some 600
+    at $n = 8$; `benchmarks/composition.py` measures the collocation's steps).
+    GONZALEZ-F's multiplier block has a zero diagonal, but it is eliminated last,
+    after it has filled in: on the gearbox, the sleigh and Euler's disk its matrices
+    pass the test unpivoted.
     Under `vmap` the test and the pivoted elimination
     run only at the steps where some trajectory needs them (`rarely`), never for a
     non-finite matrix (a failed trajectory's). Cut from differentiation, as the chord
