@@ -28,8 +28,8 @@ values are continuous across it to roundoff, and at $x' = x$ both give $\nabla f
 exactly, with finite and accurate derivatives.
 """
 
-import math
 import functools
+import math
 from collections.abc import Callable
 from typing import Any, Literal
 

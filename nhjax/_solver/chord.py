@@ -62,7 +62,7 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     GONZALEZ-F's multiplier block has a zero diagonal, but it is eliminated last,
     after it has filled in: on the gearbox, the sleigh and Euler's disk its matrices
     pass the test unpivoted.
-    Under `vmap` the test and the pivoted elimination
+    Under `vmap` the test and the pivoted LU
     run only at the steps where some trajectory needs them (`rarely`), never for a
     non-finite matrix (a failed trajectory's). Cut from differentiation, as the chord
     matrix is."""
@@ -73,20 +73,17 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     # A non-finite matrix has no better inverse than the unpivoted one, non-finite too:
     # a failed trajectory's, in a batch, would otherwise make every step of the batch
     # take both branches.
-    return rarely(_is_checked(jacobian), _checked_inverse, unpivoted, (jacobian, unpivoted))
-
-
-def _is_checked(jacobian):
-    return ~is_diagonally_dominant(jacobian) & jnp.all(jnp.isfinite(jacobian))
+    checked = ~is_diagonally_dominant(jacobian) & jnp.all(jnp.isfinite(jacobian))
+    return rarely(checked, _checked_inverse, unpivoted, (jacobian, unpivoted, checked))
 
 
 def _checked_inverse(operands):
     """The unpivoted inverse where it is accurate, else the pivoted one. Under `vmap`
     this branch runs for the whole batch, so the test is taken only where the matrix
-    was to be checked: a failed trajectory's NaN inverse is not accurate either."""
-    jacobian, unpivoted = operands
-    pivots = _is_checked(jacobian) & ~is_accurate_inverse(jacobian, unpivoted)
-    return rarely(pivots, _pivoted_inverse, unpivoted, operands)
+    was to be checked (`checked`): a failed trajectory's NaN inverse is not accurate
+    either."""
+    jacobian, unpivoted, checked = operands
+    return rarely(checked & ~is_accurate_inverse(jacobian, unpivoted), _pivoted_inverse, unpivoted, operands)
 
 
 def _pivoted_inverse(operands):
