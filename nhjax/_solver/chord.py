@@ -3,10 +3,12 @@ r"""A chord root finder that takes its Jacobian approximation from the method.
 A discrete-gradient step solves $F(u) = u - (h/s)\,\Pi(\bar\zeta)\,\bar\nabla\mathcal{H} = 0$.
 The exact Jacobian contains the derivative of the discrete gradient's correction term,
 which is $O(|\delta|^2)$ and needs higher derivatives of $\mathcal{H}$ (through a
-QR factorisation, for GONZALEZ-R). Dropping it, and freezing the Jacobian at the
-predictor, changes the Jacobian by $O(h^3)$, so the chord iteration
-$u \leftarrow u - \tilde J^{-1}F(u)$ still contracts by a factor $O(h^3)$ per
-iteration, at a fraction of the cost of Newton's method. The converged root is the same
+QR factorisation, for GONZALEZ-R). Dropping it changes $\partial\bar\nabla\mathcal{H}$
+by $O(|\delta|)$ and the Jacobian of $F$ by $O(h|\delta|) = O(h^2)$ (fitted 2.0 on
+the quartic, `tests/test_solver/test_discrete_gradient.py`), as freezing it at the
+predictor does, so the chord iteration $u \leftarrow u - \tilde J^{-1}F(u)$ still
+contracts by a factor $O(h^2)$ per iteration, at a fraction of the cost of Newton's
+method. The converged root is the same
 (to the tolerance), and derivatives of the root with respect to the inputs come from
 the implicit function theorem with the exact Jacobian of $F$
 (`nhjax._solver.base._implicit_root`), so they are exact too. (GONZALEZ-R's matrix
@@ -161,7 +163,7 @@ class PresetChord(optx.AbstractRootFinder):
     (those of the test below) and the correction is no longer halving: the root is then
     known to a few tolerances, which is all the rounding allows. (With a contraction
     rate $c$, a slowly converging iteration accepted this way is within `STALL_FACTOR`
-    $c/(1 - c)$ tolerances of its root; for the nhjax methods $c = O(h^3)$, see the
+    $c/(1 - c)$ tolerances of its root; for the nhjax methods $c = O(h^2)$, see the
     module docstring.) Where the chord matrix is ill-conditioned the rounding of the
     residual comes back amplified in the correction, which then stalls at many of its
     units while the residual stalls at a few: GONZALEZ-F on a tractor pulling 61

@@ -157,7 +157,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         frame held, `True` for the Jacobian of the residual without its correction
         term, by forward differences (`nhjax._linalg.jacobian_by_differences`: $N + 1$
         residuals, accurate to $O(\sqrt\varepsilon)$, which changes the contraction
-        by as little), which contracts the iteration by $O(h^3)$. Which is cheaper
+        by as little), which contracts the iteration by $O(h^2)$ (`nhjax._solver.chord`). Which is cheaper
         depends on how far the frame turns within $\mathcal{D}$ and on $N$: at
         $h = 0.1$ with the matrix formed at every step
         (`benchmarks/gonzalez_r_variants.py`) the exact matrix takes a tractor pulling
@@ -388,7 +388,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         the QR.
 
         What $F$ leaves out is $O(h)$ in the chord
-        iteration's contraction factor, against $O(h^3)$ for the exact matrix, and the
+        iteration's contraction factor, against $O(h^2)$ for the exact matrix, and the
         iteration goes on until the error it leaves is below the rounding
         (`chord_remainder`). Iterations per step at $h = 0.05$, without the turn,
         with it, and with the exact matrix: synthetic systems of

@@ -3,6 +3,7 @@
 import functools
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -101,18 +102,38 @@ def test_structure_approximation_is_pluggable():
     assert float(jnp.max(jnp.abs(sol_avg.ys[-1] - sol_mid.ys[-1]))) > 1e-6
 
 
-def test_custom_root_finder_is_used_and_finds_the_same_root():
+@pytest.mark.parametrize("discrete_gradient", [nh.gonzalez, nh.avf])
+def test_custom_root_finder_is_used_and_finds_the_same_root(discrete_gradient):
     """optimistix's Newton (exact Jacobian at every iterate) against the default chord
     iteration (the Jacobian of the midpoint-gradient residual, once per step): the same
     trajectory, Newton in fewer iterations."""
     quartic = nh.examples.chaotic_quartic()
     x0 = quartic.initial_state(2.0)
-    newton = nh.DiscreteGradient(root_finder=optx.Newton(rtol=0.0, atol=1e-14))
+    newton = nh.DiscreteGradient(discrete_gradient, root_finder=optx.Newton(rtol=0.0, atol=1e-14))
     solution = nh.integrate(quartic.adapted, newton, x0, 0.1, 200)
-    chord = nh.integrate(quartic.adapted, nh.DiscreteGradient(), x0, 0.1, 200)
+    chord = nh.integrate(quartic.adapted, nh.DiscreteGradient(discrete_gradient), x0, 0.1, 200)
     assert relative_energy_error(solution) <= 1e-13
     np.testing.assert_allclose(solution.ys, chord.ys, atol=1e-13)
     assert int(solution.stats["root_find_steps"]) < int(chord.stats["root_find_steps"])
+
+
+@pytest.mark.parametrize("discrete_gradient", [nh.gonzalez, nh.avf])
+def test_the_chord_matrix_differs_from_the_residuals_jacobian_at_second_order(discrete_gradient):
+    """The chord matrix, from the midpoint gradient, against the Jacobian of the
+    residual itself (the discrete gradient's correction or quadrature differentiated) at
+    the step's predictor on the quartic's adapted form: apart by O(h |delta|) = O(h^2),
+    not equal."""
+    quartic = nh.examples.chaotic_quartic()
+    x0 = quartic.initial_state(0.7)
+    method = nh.DiscreteGradient(discrete_gradient)
+    step_sizes, gaps = [0.1, 0.05, 0.025], []
+    for h in step_sizes:
+        guess, data = method.setup(quartic.adapted, 0.0, h, x0, None, method.initial_carry(quartic.adapted, x0, None))
+        chord = jax.jacfwd(method.simplified_residual)(guess, data)
+        exact = jax.jacfwd(method.residual)(guess, data)
+        gaps.append(float(jnp.max(jnp.abs(chord - exact))))
+    assert gaps[0] > 1e-6, gaps
+    assert 1.7 <= fitted_order(step_sizes, gaps) <= 2.5, gaps
 
 
 def test_float32_conserves_energy_to_float32_roundoff():
