@@ -16,6 +16,7 @@ from .._discrete_gradient import (
     swap_arguments,
     SwappedArguments,
 )
+from .._linalg import product
 from .._system import SkewGradientSystem
 from .base import AbstractMethod, increment_scale, resolution_of
 
@@ -150,23 +151,33 @@ class DiscreteGradient(AbstractMethod):
         energy = system.hamiltonian(y0, args) if self.discrete_gradient is gonzalez else None
         return guess, _StepData(system, y0, h, scale, args, midpoint_time, energy)
 
-    def _equations(self, u, data, discrete_gradient=None):
-        """The step's right-hand side $(x' - x)/h$, and its exchange (`exchange`)."""
+    def _equations(self, u, data, discrete_gradient=None, fused=False):
+        """The step's right-hand side $(x' - x)/h$, and its exchange (`exchange`).
+
+        `fused` (the chord iteration's residual): $\tilde\Pi\,\bar\nabla H$ as a
+        broadcast product (`nhjax._linalg.product`), which XLA:CPU fuses with the
+        forming of $\tilde\Pi$, so that no $N \times N$ array is left in the
+        iteration's loop: one of more than 512 bytes ($N = 13$ on the quartic's adapted
+        form) puts every operation of the loop on XLA's thread pool
+        (`nhjax._linalg.SEQUENTIAL_BYTES`). Not in the residual that is differentiated
+        (the chord matrix, the implicit function theorem): its tangents through the
+        broadcast fuse into one large reduction, which cost AVF's step more than the
+        loop gained (`python benchmarks/discrete_gradient.py`)."""
         system, x, args = data.system, data.x, data.args
         x1 = x + data.scale * u
         discrete_gradient = self.discrete_gradient if discrete_gradient is None else discrete_gradient
         discrete_gradient = with_start_value(discrete_gradient, data.energy)
         structure = self.structure_approximation(system.structure, x, x1, args)
         gradient = discrete_gradient(system.hamiltonian, x, x1, args)
-        field = structure @ gradient
+        field = product(structure, gradient) if fused else structure @ gradient
         if not system.is_forced():
             return field, None
         midpoint, time = 0.5 * (x + x1), data.midpoint_time
         supplied, dissipated = system.power_along(time, midpoint, gradient, args)
         return field + system.applied_force(time, midpoint, args, gradient), (data.h * supplied, data.h * dissipated)
 
-    def residual(self, u, data, discrete_gradient=None):
-        field, _ = self._equations(u, data, discrete_gradient)
+    def residual(self, u, data, discrete_gradient=None, fused=False):
+        field, _ = self._equations(u, data, discrete_gradient, fused)
         return u - data.h * field / data.scale
 
     def residual_and_exchange(self, u, data):
@@ -179,11 +190,11 @@ class DiscreteGradient(AbstractMethod):
         return self._equations(u, data)[1]
 
     def root_find_residual(self, u, data):
-        """For `nhjax.gonzalez`, the residual with `gonzalez_values` (the same values,
-        no branch); otherwise the residual itself."""
+        """The residual with its product fused (`_equations`), and for `nhjax.gonzalez`
+        with `gonzalez_values` (the same values, no branch)."""
         if self.discrete_gradient is not gonzalez:
-            return self.residual(u, data)
-        return self.residual(u, data, gonzalez_values)
+            return self.residual(u, data, fused=True)
+        return self.residual(u, data, gonzalez_values, fused=True)
 
     def simplified_residual(self, u, data):
         r"""For the symmetric discrete gradients, the residual with the midpoint gradient

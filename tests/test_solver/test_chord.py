@@ -382,3 +382,30 @@ def test_chord_iterations_touch_only_arrays_xla_runs_in_sequence(case, method):
     assert len(loops) >= 2
     sizes = {loop: _largest_array(computations, loop) for loop in loops}
     assert max(sizes.values()) <= SEQUENTIAL_BYTES, sizes
+
+
+def _contains_loop(computations, name, seen=()) -> bool:
+    for line in computations.get(name, []):
+        if " while(" in line:
+            return True
+        if any(_contains_loop(computations, child, seen + (name,)) for child in _called(line) if child not in seen):
+            return True
+    return False
+
+
+def test_the_discrete_gradients_chord_iterations_touch_only_arrays_xla_runs_in_sequence():
+    """DiscreteGradient on the quartic's adapted form ($N = 13$): its structure matrix,
+    1 352 bytes, is formed in the chord iteration's residual but is not an array of the
+    iteration's loop, since the residual's product with it is fused
+    (`DiscreteGradient._equations`); the loop of the steps, which forms the chord matrix,
+    keeps it. Every loop with none inside it (the iterations') runs in sequence."""
+    quartic = nh.examples.chaotic_quartic(3)
+    run = jax.jit(lambda x: nh.integrate(quartic.adapted, nh.DiscreteGradient(), x, 0.1, 3))
+    computations = _computations(run.lower(quartic.initial_state(0.7)).compile().as_text())
+    loops = _loops(computations)
+    innermost = [loop for loop in loops if not _contains_loop(computations, loop)]
+    outer = [loop for loop in loops if loop not in innermost]
+    assert innermost and outer
+    assert max(_largest_array(computations, loop) for loop in outer) > SEQUENTIAL_BYTES
+    sizes = {loop: _largest_array(computations, loop) for loop in innermost}
+    assert max(sizes.values()) <= SEQUENTIAL_BYTES, sizes
