@@ -39,6 +39,10 @@ def test_one_device_equals_vmap_of_integrate():
 
 
 def test_compositions_run_as_ensembles_with_their_substep_statistics():
+    """A composition's per-substep iterations come out of the sharded run as out of
+    vmap's, up to one per substep, for the reason `test_one_device_equals_vmap_of_integrate`
+    gives (here 87 against 86 iterations of one substep over 20 steps, the states 2e-15
+    apart)."""
     quartic = nh.examples.chaotic_quartic(3)
     states = quartic.random_initial_states(jax.random.key(2), 3)
     method = nh.Composition(nh.DiscreteGradient(), 4)
@@ -46,7 +50,9 @@ def test_compositions_run_as_ensembles_with_their_substep_statistics():
     reference = jax.vmap(lambda x: nh.integrate(quartic.adapted, method, x, 0.1, 20, save_every=10))(states)
     assert _max_difference(sharded.ys, reference.ys) <= 1e-13
     assert sharded.stats["substep_root_find_steps"].shape == (3, 5)
-    assert jnp.all(sharded.stats["substep_root_find_steps"] == reference.stats["substep_root_find_steps"])
+    difference = sharded.stats["substep_root_find_steps"] - reference.stats["substep_root_find_steps"]
+    assert jnp.all(jnp.abs(difference) <= 1)
+    assert jnp.all(reference.stats["substep_root_find_steps"] >= 80)
     assert jnp.all(sharded.stats["failed_substep"] == -1)
 
 
