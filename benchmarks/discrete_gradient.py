@@ -29,6 +29,9 @@ class _AVFWithExactChordMatrix(nh.DiscreteGradient):
         return self.residual(u, data)
 
 
+# The targets set for a discrete-gradient step, per method.
+TARGETS = dict(us_per_step=5.0, trajectory_steps_per_s=1e6, compile_s=10.0)
+
 METHODS = {
     "gonzalez": nh.DiscreteGradient(),
     "avf": nh.DiscreteGradient(nh.avf),
@@ -65,7 +68,9 @@ def main():
     single_outputs, single_seconds = run_and_time_interleaved(singles, x0, repeats=options.repeats)
     _, batch_seconds = run_and_time_interleaved(batches, states, repeats=options.repeats)
 
-    results = dict(system="chaotic quartic, adapted (n = 3, N = 13)", h=h, repeats=options.repeats, methods={})
+    results = dict(
+        system="chaotic quartic, adapted (n = 3, N = 13)", h=h, repeats=options.repeats, targets=TARGETS, methods={}
+    )
     for name in METHODS:
         iterations = float(single_outputs[name].stats["root_find_steps"]) / options.steps
         results["methods"][name] = dict(
@@ -82,6 +87,8 @@ def main():
               f"{options.batch * options.batch_steps / batch_seconds[name]:10.3e} trajectory-steps/s in a batch "
               f"of {options.batch}, compiled in {compiled[name]['single']:.2f} s / {compiled[name]['batch']:.2f} s, "
               f"{iterations:.2f} chord iterations per step")
+    print(f"targets: <= {TARGETS['us_per_step']:g} µs/step single, >= {TARGETS['trajectory_steps_per_s']:.0e} "
+          f"trajectory-steps/s in a batch, compiled in <= {TARGETS['compile_s']:g} s")
     exact = "avf, exact chord matrix"
     results["avf_over_exact_chord_matrix"] = dict(
         single=single_seconds["avf"] / single_seconds[exact],

@@ -192,9 +192,8 @@ class DiscreteGradient(AbstractMethod):
     def root_find_residual(self, u, data):
         """The residual with its product fused (`_equations`), and for `nhjax.gonzalez`
         with `gonzalez_values` (the same values, no branch)."""
-        if self.discrete_gradient is not gonzalez:
-            return self.residual(u, data, fused=True)
-        return self.residual(u, data, gonzalez_values, fused=True)
+        values = gonzalez_values if self.discrete_gradient is gonzalez else None
+        return self.residual(u, data, values, fused=True)
 
     def simplified_residual(self, u, data):
         r"""For the symmetric discrete gradients, the residual with the midpoint gradient
