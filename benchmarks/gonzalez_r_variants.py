@@ -1,4 +1,4 @@
-"""GONZALEZ-R's step against variants of itself, timed in one process with the runs
+r"""GONZALEZ-R's step against variants of itself, timed in one process with the runs
 interleaved (A, B, C, A, B, C, ...) so that the machine's drift falls on all alike:
 
 - `GONZALEZ-R`: as shipped (chord matrix with the frame held to first order and

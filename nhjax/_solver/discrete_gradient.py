@@ -152,7 +152,7 @@ class DiscreteGradient(AbstractMethod):
         return guess, _StepData(system, y0, h, scale, args, midpoint_time, energy)
 
     def _equations(self, u, data, discrete_gradient=None, fused=False):
-        """The step's right-hand side $(x' - x)/h$, and its exchange (`exchange`).
+        r"""The step's right-hand side $(x' - x)/h$, and its exchange (`exchange`).
 
         `fused` (the chord iteration's residual): $\tilde\Pi\,\bar\nabla H$ as a
         broadcast product (`nhjax._linalg.product`), which XLA:CPU fuses with the
