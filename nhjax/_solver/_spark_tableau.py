@@ -88,6 +88,30 @@ class SPARKTableau(eqx.Module):
     def stages(self) -> int:
         return len(self.b)
 
+    def stage_unknowns(self, *names: str) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        r"""Which stages of one variable are unknowns of a step, for the variable whose
+        stage equations have the tableaux `names` (`"velocity"` for $Q$; `"force"` and
+        `"constraint_force"` for $P$). A stage whose rows are zero in all of them is
+        the step's start ($Q_1 = q_0$ with Lobatto IIIA, whose first row is zero), and
+        one whose rows equal an earlier stage's is that stage ($P_1 = P_2$ with IIIB for
+        every force at $s = 2$, whose two rows are $(\tfrac12, 0)$); neither needs an
+        unknown or an equation. Rows are compared exactly: the tableaux are static.
+
+        Returns `(rows, source)`: the stages that are unknowns, in order, and for each
+        stage the index in `rows` of the stage it equals, or $-1$ for the start."""
+        table = np.concatenate([np.asarray(getattr(self, name)) for name in names], axis=1)
+        rows, source = [], []
+        for i, row in enumerate(table):
+            earlier = [j for j, stage in enumerate(rows) if np.array_equal(table[stage], row)]
+            if not np.any(row):
+                source.append(-1)
+            elif earlier:
+                source.append(earlier[0])
+            else:
+                source.append(len(rows))
+                rows.append(i)
+        return tuple(rows), tuple(source)
+
     def is_symmetric(self) -> bool:
         r"""Whether the method is self-adjoint (Hairer, Lubich & Wanner, *Geometric
         Numerical Integration*, §V.2): $b_{s+1-j} = b_j$, $c_{s+1-i} = 1 - c_i$, each of

@@ -9,6 +9,7 @@ import jax
 import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import Array, Float
 
 from .._nonholonomic import NonholonomicSystem
 from ._spark_tableau import (
@@ -66,14 +67,19 @@ class SPARK(AbstractMethod):
     Jacobian when $A$ has full rank. The last $k$, $g(q_1, p_1) = 0$, make the constraint
     $A(q_1)\,\partial_pH(q_1, p_1) = 0$ hold at every step's end, to the root finder's
     tolerance; the stage values meet it only through the weighted stage equations.
+    A stage that the tableau fixes is not an unknown and has no equation
+    (`SPARKTableau.stage_unknowns`): with a zero row, $Q_i = q_0$; with the rows of an
+    earlier stage, $P_i = P_j$. That leaves the root finder's matrix (formed, and
+    inverted, at every step) smaller and the same root.
 
     **The default tableau**, `LOBATTO_IIIA_B_2` ($s = 2$, $c = (0, 1)$,
     $b = (\tfrac12, \tfrac12)$): velocity with Lobatto IIIA
     $\begin{pmatrix}0 & 0\\ \tfrac12 & \tfrac12\end{pmatrix}$, every force, the
     constraint force $A^T\Lambda$ included, with IIIB
     $\begin{pmatrix}\tfrac12 & 0\\ \tfrac12 & 0\end{pmatrix}$, and the stage
-    constraint $\tfrac12(g(Q_1, P_1) + g(Q_2, P_2)) = 0$: $4n + 2k$ unknowns and
-    equations, $Q_1 = q_0$ and $Q_2 = q_1$ (the nonholonomic RATTLE). The alternative
+    constraint $\tfrac12(g(Q_1, P_1) + g(Q_2, P_2)) = 0$: $Q_1 = q_0$, $P_1 = P_2$
+    and $Q_2 = q_1$ (the nonholonomic RATTLE), so $2n + 2k$ unknowns and equations
+    ($Q_2$, $P_1$, $\Lambda_1$, $\Lambda_2$) where the general count is $4n + 2k$. The alternative
     `LOBATTO_IIIA_B_C_CSTAR_D_2` (`lobatto_spark_tableau(2, "IIID")`) puts the
     constraint force on IIID $= (\mathrm{IIIC} + \mathrm{IIIC^*})/2 =
     \begin{pmatrix}\tfrac14 & -\tfrac14\\ \tfrac34 & \tfrac14\end{pmatrix}$ instead.
@@ -162,6 +168,15 @@ class SPARK(AbstractMethod):
         """Whether the tableau is self-adjoint (`SPARKTableau.is_symmetric`)."""
         return self.tableau.is_symmetric()
 
+    def _q_stages(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """The stages $Q_i$ that are unknowns, and where each stage comes from
+        (`SPARKTableau.stage_unknowns`)."""
+        return self.tableau.stage_unknowns("velocity")
+
+    def _p_stages(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """As `_q_stages`, for the stages $P_i$."""
+        return self.tableau.stage_unknowns("force", "constraint_force")
+
     def _coefficients(self, dtype):
         t = self.tableau
         return tuple(
@@ -188,10 +203,11 @@ class SPARK(AbstractMethod):
         row_norm = jnp.where(row_norm > 0, row_norm, 1)
         impulse_scale = jnp.max(scale_p) / row_norm
         constraint_scale = row_norm * lax.stop_gradient(1 + jnp.max(jnp.abs(v0)))
-        guess_q = h * jnp.sum(velocity, axis=1)[:, None] * v0 / scale_q
+        q_rows, p_rows = self._q_stages()[0], self._p_stages()[0]
+        guess_q = h * jnp.sum(velocity[q_rows, :], axis=1)[:, None] * v0 / scale_q
         guess_p = (
-            h * jnp.sum(force, axis=1)[:, None] * f0
-            + h * jnp.sum(constraint_force, axis=1)[:, None] * (a.T @ multiplier)
+            h * jnp.sum(force[p_rows, :], axis=1)[:, None] * f0
+            + h * jnp.sum(constraint_force[p_rows, :], axis=1)[:, None] * (a.T @ multiplier)
         ) / scale_p
         guess_impulse = jnp.broadcast_to(h * multiplier / impulse_scale, (s, k))
         guess = jnp.concatenate([guess_q.ravel(), guess_p.ravel(), guess_impulse.ravel()])
@@ -207,11 +223,13 @@ class SPARK(AbstractMethod):
         system, args = data.system, data.args
         s, n = self.tableau.stages, q.shape[0]
         b = self._coefficients(q.dtype)[0]
-        u_q = unknowns[: s * n].reshape(s, n)
-        u_p = unknowns[s * n : 2 * s * n].reshape(s, n)
-        impulse = unknowns[2 * s * n :].reshape(s, -1) * data.impulse_scale
-        stage_q = q + scale_q * u_q
-        stage_p = p + scale_p * u_p
+        (q_rows, q_source), (p_rows, p_source) = self._q_stages(), self._p_stages()
+        q_end, p_end = len(q_rows) * n, (len(q_rows) + len(p_rows)) * n
+        u_q = unknowns[:q_end].reshape(-1, n)
+        u_p = unknowns[q_end:p_end].reshape(-1, n)
+        impulse = unknowns[p_end:].reshape(s, -1) * data.impulse_scale
+        stage_q = q + scale_q * _every_stage(u_q, q_source)
+        stage_p = p + scale_p * _every_stage(u_p, p_source)
 
         stage_times = data.t + h * jnp.asarray(self.tableau.c, dtype=q.dtype)
 
@@ -234,8 +252,9 @@ class SPARK(AbstractMethod):
         h, scale_q, scale_p, constraint_scale = data.h, data.scale_q, data.scale_p, data.constraint_scale
         _, velocity_tableau, force_tableau, constraint_tableau, weights = self._coefficients(data.q.dtype)
         (u_q, u_p), (velocity, force, reaction, g), (q1, p1), _ = self._stages(unknowns, data)
-        stage_q = u_q - h * (velocity_tableau @ velocity) / scale_q
-        stage_p = u_p - (h * (force_tableau @ force) + constraint_tableau @ reaction) / scale_p
+        q_rows, p_rows = self._q_stages()[0], self._p_stages()[0]
+        stage_q = u_q - h * (velocity_tableau[q_rows, :] @ velocity) / scale_q
+        stage_p = u_p - (h * (force_tableau[p_rows, :] @ force) + constraint_tableau[p_rows, :] @ reaction) / scale_p
         stage_constraint = (weights @ g) / constraint_scale
         end_constraint = data.system.constraint_residual((q1, p1), data.args) / constraint_scale
         return jnp.concatenate(
@@ -252,3 +271,11 @@ class SPARK(AbstractMethod):
         b = self._coefficients(data.q.dtype)[0]
         supplied, dissipated = data.h * (b @ self._stages(unknowns, data)[-1])
         return supplied, dissipated
+
+
+def _every_stage(unknown_stages: Float[Array, "r n"], source: tuple[int, ...]) -> Float[Array, "s n"]:
+    """The increments of every stage from those of the stages that are unknowns:
+    stage i is row `source[i]`, or zero (the step's start) where that is -1
+    (`SPARKTableau.stage_unknowns`)."""
+    zero = jnp.zeros(unknown_stages.shape[1:], unknown_stages.dtype)
+    return jnp.stack([zero if j < 0 else unknown_stages[j] for j in source])

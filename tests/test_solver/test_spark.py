@@ -138,6 +138,39 @@ def test_lobatto_tableaux():
             np.testing.assert_allclose(matrix + matrix[::-1, ::-1], np.broadcast_to(b, (s, s)), atol=1e-14)
 
 
+class _EveryStageUnknown(nh.SPARK):
+    """SPARK with every stage an unknown of the step, the general count 2ns + ks."""
+
+    def _q_stages(self):
+        every = tuple(range(self.tableau.stages))
+        return every, every
+
+    _p_stages = _q_stages
+
+
+def test_stages_that_the_tableau_fixes_are_not_unknowns():
+    """Lobatto IIIA's zero first row gives Q_1 = q_0; IIIB's equal rows at s = 2 give
+    P_1 = P_2. Left out of the unknowns, they leave the step the same as with every stage
+    an unknown (to the root finder's tolerance), from a system of 2n + 2k unknowns for
+    the default tableau instead of 4n + 2k."""
+    assert nh.LOBATTO_IIIA_B_2.stage_unknowns("velocity") == ((1,), (-1, 0))
+    assert nh.LOBATTO_IIIA_B_2.stage_unknowns("force", "constraint_force") == ((0,), (0, 0))
+    assert nh.LOBATTO_IIIA_B_C_CSTAR_D_2.stage_unknowns("force", "constraint_force") == ((0, 1), (0, 1))
+    assert LOBATTO_3.tableau.stage_unknowns("velocity") == ((1, 2), (-1, 0, 1))
+    assert LOBATTO_3.tableau.stage_unknowns("force", "constraint_force") == ((0, 1, 2), (0, 1, 2))
+    example, y0 = STARTS["disk, k = 2"]
+    n, k = y0[0].shape[0], example.canonical.constraints(y0[0], example.args).shape[0]
+    for method, count in ((METHOD, 2 * n + 2 * k), (IIID, 3 * n + 2 * k), (LOBATTO_3, 5 * n + 3 * k)):
+        every = _EveryStageUnknown(method.tableau)
+        unknowns = [m.setup(example.canonical, 0.0, 0.05, y0, example.args, None)[0].shape[0] for m in (method, every)]
+        assert unknowns == [count, 2 * n * method.tableau.stages + k * method.tableau.stages], unknowns
+        ends = [
+            nh.integrate(example.canonical, m, y0, 0.05, 20, args=example.args, save_every=20).ys for m in (method, every)
+        ]
+        for a, b in zip(*ends):
+            np.testing.assert_allclose(a[-1], b[-1], rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("s", [2, 3, 4, 5])
 def test_the_stage_constraints_are_those_of_the_lobatto_iiia_form(s):
     """The weights b_j c_j^(i-1) and the rows 2..s of Lobatto IIIA (the form in which
