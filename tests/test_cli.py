@@ -166,6 +166,36 @@ def test_the_command_compiles_with_the_loop_emitter_unless_told_otherwise(monkey
     assert os.environ["XLA_FLAGS"] == _nhjax_command.LOOP_EMITTER
 
 
+_LOOP_PROGRAM = """
+import jax, jax.numpy as jnp
+loop = lambda x: jax.lax.fori_loop(0, 10, lambda i, y: jnp.sin(y) @ jnp.ones((64, 64)), x)
+print(jax.jit(loop).lower(jnp.ones(64)).compile().as_text())
+"""
+
+
+def test_the_command_compiles_whole_loops_into_one_function(monkeypatch, tmp_path):
+    """The command's `WHOLE_LOOPS` flag (added unless `XLA_FLAGS` sets XLA's backend
+    options) makes XLA:CPU compile a loop whose arrays pass its default size limit (a
+    64 x 64 matrix, 16 KiB) into one function, which it otherwise runs operation by
+    operation."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert _nhjax_command.xla_knows(_nhjax_command.WHOLE_LOOPS)
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    _nhjax_command.add_xla_flags([_nhjax_command.LOOP_EMITTER, _nhjax_command.WHOLE_LOOPS])
+    assert os.environ["XLA_FLAGS"].split() == [_nhjax_command.LOOP_EMITTER, _nhjax_command.WHOLE_LOOPS]
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0")
+    _nhjax_command.add_xla_flags([_nhjax_command.WHOLE_LOOPS])
+    assert os.environ["XLA_FLAGS"] == "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0"
+    hoisted = []
+    for flags in ("", _nhjax_command.WHOLE_LOOPS):
+        environment = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
+        program = subprocess.run(
+            [sys.executable, "-c", _LOOP_PROGRAM], env=environment, capture_output=True, text=True, check=True
+        ).stdout
+        hoisted.append('xla_cpu_small_call="true"' in program)
+    assert hoisted == [False, True]
+
+
 def test_the_flag_probe_is_asked_once_per_jaxlib_version(monkeypatch, tmp_path):
     """`xla_knows` remembers each answer for this jaxlib in the user's cache, and asks a
     child process again where the cache is unreadable."""
