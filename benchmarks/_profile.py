@@ -2,6 +2,7 @@
 alone inside a compiled loop (so that dispatch overhead does not count), beside the
 measured cost of whole steps."""
 
+import re
 import time
 
 import jax
@@ -116,3 +117,122 @@ def derivative_parts(system, method, y0, dt, steps: int, repeats: int, loss_of, 
         step_derivative=per_call_us(step_derivative, roots[0]),
     )
     return parts
+
+
+# Operations that do no work at run time: they name, pass on or reinterpret buffers.
+_FREE_OPERATIONS = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast"}
+
+
+def hlo_counts(function, x) -> dict:
+    """The size of `function`'s program for an argument like `x`, compiled alone:
+    `hlo_instructions`, every instruction of its optimised HLO, fused ones included
+    (what XLA compiles), and `operations`, those outside fused computations, less the
+    ones that do no work (parameters, constants, tuples and their elements, bitcasts):
+    each of these is one kernel or library call when the program runs, and on
+    XLA:CPU the cost of a small step is about their number."""
+    text = jax.jit(function).lower(x).compile().as_text()
+    fused = set(re.findall(r"\bfusion\(.*?calls=%?([\w.\-]+)", text))
+    counts = dict(hlo_instructions=0, operations=0)
+    computation = None
+    for line in text.splitlines():
+        header = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
+        if header:
+            computation = header.group(1)
+            continue
+        instruction = re.match(r"^\s*(?:ROOT )?%?[\w.\-]+ = \S+ ([\w\-]+)\(", line)
+        if instruction is None:
+            continue
+        counts["hlo_instructions"] += 1
+        if computation not in fused and instruction.group(1) not in _FREE_OPERATIONS:
+            counts["operations"] += 1
+    return counts
+
+
+def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[dict, dict]:
+    r"""The pieces of one GONZALEZ-R step (`nhjax.GonzalezR`) from `y0`, each a function of
+    one array at `unknowns` $u$ (default: the first step's root), with
+    $\zeta' = \zeta + Su$, $\bar\zeta$ their midpoint, $\bar q$ its position:
+    `({name: function}, {name: argument})`.
+
+    - `frame`: $X(\bar q)^Tp$, the QR of $A(\bar q)^T$ and one product with the frame;
+    - `frame_derivative`: $Jv$ and $J^Tw$, $J = \partial_q(X^Tp)$ at $\bar q$, by one
+      linearisation of $q \mapsto X(q)^Tp$ applied forward and transposed, as
+      `nhjax._reduced.ReducedSystem.at` forms them;
+    - `field`: the residual with the midpoint gradient alone (no Gonzalez correction),
+      $u - h\,\Pi(\bar\zeta)\nabla\mathcal{H}(\bar\zeta)/S$;
+    - `correction`: what the Gonzalez correction adds to it, given the midpoint
+      gradient: $\mathcal{H}(\zeta')$ and the corrected gradient, values only, as the
+      root finder evaluates it (`"rarely"`);
+    - `correction_near`: the same at points $10^{-9}$ apart, where the difference of
+      the energies comes from the segment's quadrature;
+    - `taylor_derivative`: a tangent of the correction there, differentiable
+      (`"cond"`), which takes the derivatives of its Taylor form (third derivatives of
+      $\mathcal{H}$), as a derivative through such a step does;
+    - `residual`: one root-finder residual (`root_find_residual`);
+    - `chord_matrix`: the chord matrix and its inverse (`chord_matrix`);
+    - `residual_jacobian`: the Jacobian of the residual in the unknowns by `jax.jacfwd`,
+      which a derivative of the run forms at every step (`nhjax._solver.base._implicit_root`);
+    - `setup` and `complete`: the state to the unknowns and predictor, the unknowns to
+      the new state.
+
+    `correction` returns the corrected gradient $g$, so that $u - h\,\Pi(\bar\zeta)g/S$
+    is the residual at $u$ (`tests/test_benchmarks.py`)."""
+    from nhjax import _replay
+    from nhjax._discrete_gradient import gonzalez_correction
+
+    dt = jnp.asarray(h)
+    root = unknowns
+    if root is None:
+        root = _replay._record(system, method, y0, dt, jnp.zeros_like(dt), args, 1, 1)[0][0]
+    carry = method.initial_carry(system, y0, args)
+    _, data = method.setup(system, 0.0, dt, y0, args, carry)
+    reduced, zeta, scale = data.reduced, data.zeta, data.scale
+    zeta1 = zeta + scale * root
+    midpoint = 0.5 * (zeta + zeta1)
+    n = y0[0].shape[0]
+    momentum = reduced.at(midpoint, args).momentum
+    gradient = reduced.at(midpoint, args).gradient
+
+    def frame(q):
+        return reduced.frame(q, args).transpose_times(momentum)
+
+    def frame_derivative(q):
+        along, linear = jax.linearize(frame, q)
+        return linear(q), jax.linear_transpose(linear, q)(along)[0]
+
+    def correction(end, branch="rarely"):
+        energy1, segment = reduced.energy_segment(zeta, data.momentum, end, args)
+        return gonzalez_correction(
+            reduced.hamiltonian, gradient, zeta, end, args,
+            branch=branch, taylor=True, f_x=data.energy, f_x1=energy1, segment=segment,
+        )
+
+    def setup(offset):
+        shifted = jax.tree.map(lambda leaf: leaf + offset[0], y0)
+        return method.setup(system, 0.0, dt, shifted, args, carry)[0]
+
+    near = zeta + 1e-9 * scale * root / jnp.max(jnp.abs(root))
+    pieces = dict(
+        frame=(frame, midpoint[:n]),
+        frame_derivative=(frame_derivative, midpoint[:n]),
+        field=(lambda u: method.simplified_residual(u, data), root),
+        correction=(correction, zeta1),
+        correction_near=(correction, near),
+        taylor_derivative=(lambda end: jax.jvp(lambda e: correction(e, "cond"), (end,), (root,))[1], near),
+        residual=(lambda u: method.root_find_residual(u, data), root),
+        chord_matrix=(lambda u: method.chord_matrix(u, data), root),
+        residual_jacobian=(lambda u: jax.jacfwd(method.residual)(u, data), root),
+        setup=(setup, jnp.zeros((1,), root.dtype)),
+        complete=(lambda u: jax.tree.leaves(method.complete(u, data)[0]), root),
+    )
+    return {name: f for name, (f, _) in pieces.items()}, {name: x for name, (_, x) in pieces.items()}
+
+
+def gonzalez_r_parts(system, method, y0, h, args=None, repeats: int = 200) -> dict:
+    """µs per call (`per_call_us`) and program size (`hlo_counts`) of each piece of a
+    GONZALEZ-R step (`gonzalez_r_pieces`)."""
+    functions, arguments = gonzalez_r_pieces(system, method, y0, h, args)
+    return {
+        name: dict(us=per_call_us(function, arguments[name], repeats), **hlo_counts(function, arguments[name]))
+        for name, function in functions.items()
+    }

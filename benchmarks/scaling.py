@@ -66,7 +66,16 @@ rtol = atol = 1e-13; times are medians after set-up and compilation, which are r
 apart. For each target error, the cheapest run of each side that reaches it, and their
 ratio.
 
-Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R] [--parts family,disk,scipy] [--methods NAME,...]
+Where GONZALEZ-R's step goes (`--parts profile`), at each n of the family: each piece
+of a step timed alone in a compiled loop (`_profile.gonzalez_r_pieces`: the frame, the
+products with its derivative, the field, the Gonzalez correction and its derivative in
+Taylor form for nearly equal points, a residual, the chord matrix, the residual's
+Jacobian that derivatives form, setup and completion), with the size of each piece's
+program (`_profile.hlo_counts`: HLO instructions, and the operations XLA runs one by
+one, about which a small step's cost on XLA:CPU goes), and each piece's growth exponent
+from n = 16 on; under "gonzalez_r_parts" and the family's name.
+
+Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R] [--parts family,disk,scipy,profile] [--methods NAME,...]
 [--family synthetic|trailers]. Results go to benchmarks/results/scaling.json (the
 trailers' under "trailers") and a log-log plot beside it, scaling.png (or
 scaling_trailers.png).
@@ -86,6 +95,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import nhjax as nh  # noqa: E402
+from _profile import gonzalez_r_parts  # noqa: E402
 from _timing import CompileTimes, run_and_time, run_and_time_interleaved, timed, write  # noqa: E402
 from nhjax._methods import METHODS  # noqa: E402
 
@@ -227,7 +237,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="4,8,16,32,64")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--parts", default="family,disk,scipy")
+    parser.add_argument("--parts", default="family,disk,scipy,profile")
     parser.add_argument("--family", choices=sorted(FAMILIES), default="synthetic")
     parser.add_argument(
         "--methods", default=None,
@@ -252,6 +262,9 @@ def main():
         results["rolling_disk_3d_against_scipy"] = _against_scipy(options.repeats)
     if "disk" in parts:
         results["rolling_disk_3d"] = _disk(methods, options.repeats)
+    if "profile" in parts:
+        _gonzalez_r_profile(options.family, sizes, results)
+        write(results, options.out)
     if "family" not in parts:
         write(results, options.out)
         return
@@ -286,6 +299,37 @@ def main():
     _plot(table, plot, axis)
 
 
+def _growth_from_16(sizes_and_times) -> float:
+    """The slope of log(time) against log(n) over the sizes from n = 16 on."""
+    large = [(n, time) for n, time in sizes_and_times if n >= 16]
+    return float(np.polyfit(np.log([n for n, _ in large]), np.log([time for _, time in large]), 1)[0])
+
+
+def _gonzalez_r_profile(family_name, sizes, results):
+    """GONZALEZ-R's pieces at each size of the family (`_profile.gonzalez_r_parts`),
+    with each piece's growth exponent, into `results` (the sizes not run keep their
+    last rows)."""
+    family = FAMILIES[family_name][0]
+    stored = results.get("gonzalez_r_parts", {}).get(family_name, {}).get("sizes", {})
+    table = {int(n): row for n, row in stored.items() if int(n) not in sizes}
+    for n in sizes:
+        system, args, y0, _ = family(n)
+        table[n] = gonzalez_r_parts(system, nh.GonzalezR(), y0, H, args)
+        print(
+            f"GONZALEZ-R's pieces, n = {n}: "
+            + "; ".join(f"{name} {part['us']:.1f} µs, {part['operations']} operations" for name, part in table[n].items()),
+            flush=True,
+        )
+    table = dict(sorted(table.items()))
+    growth = {}
+    if sum(n >= 16 for n in table) >= 2:
+        growth = {name: _growth_from_16([(n, row[name]["us"]) for n, row in table.items()]) for name in table[max(table)]}
+        print("  growth from n = 16 on: " + ", ".join(f"{name} n^{value:.2f}" for name, value in growth.items()))
+    results.setdefault("gonzalez_r_parts", {})[family_name] = dict(
+        system=FAMILIES[family_name][1], h=H, sizes=table, growth_exponent_from_16=growth
+    )
+
+
 def _completed_sizes(table, name) -> list[int]:
     """The sizes of `table` at which the run `name` was timed and completed its steps (a
     run that failed stopped at its failed step: its time per step means nothing)."""
@@ -309,8 +353,7 @@ def _record(results, options, table, description):
     for name in _timed_names(table):
         large = [n for n in _completed_sizes(table, name) if n >= 16]
         if len(large) >= 2:
-            times = [table[n][name]["us_per_step"] for n in large]
-            growth[name] = float(np.polyfit(np.log(large), np.log(times), 1)[0])
+            growth[name] = _growth_from_16([(n, table[n][name]["us_per_step"]) for n in large])
     figures = dict(system=description, h=H, sizes=table, growth_exponent_from_16=growth)
     if options.family == "synthetic":
         results.update(figures)

@@ -45,3 +45,52 @@ def test_numpy_index1_vector_field_is_nhjax_vector_field(name, problem, system, 
     theirs = peers.index1_vector_field(problem)(0.0, np.concatenate([q, p]))
     ours = jnp.concatenate(system.vf(0.0, y0, None))
     assert np.max(np.abs(theirs - np.asarray(ours))) <= 1e-13 * (1 + np.max(np.abs(theirs)))
+
+
+import _profile  # noqa: E402
+
+
+def test_hlo_counts_count_operations_outside_fusions():
+    x = jnp.linspace(0.0, 1.0, 64)
+    elementwise = _profile.hlo_counts(lambda v: jnp.sin(3.0 * jnp.cos(v)) + 1.0, x)
+    # One fused kernel of four or more instructions.
+    assert elementwise["operations"] == 1
+    assert elementwise["hlo_instructions"] >= 4
+    matrix = jnp.outer(x, x)
+    with_products = _profile.hlo_counts(lambda v: jnp.sin(matrix @ jnp.cos(matrix @ v)), x)
+    assert with_products["operations"] >= 3
+
+
+def _profiled_systems():
+    sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "benchmarks"))
+    import scaling
+
+    synthetic, _, synthetic_start, _ = scaling.FAMILIES["synthetic"][0](8)
+    trailers = nh.examples.tractor_trailers(2)
+    return [
+        ("synthetic, n = 8 (M = I)", synthetic, synthetic_start, None),
+        ("tractor with 2 trailers (M(q))", trailers.canonical, trailers.initial_state(), trailers.args),
+    ]
+
+
+@pytest.mark.parametrize(("name", "system", "y0", "args"), _profiled_systems(), ids=lambda c: c if isinstance(c, str) else "")
+def test_gonzalez_r_profile_pieces_make_its_residual(name, system, y0, args):
+    """The profile times GONZALEZ-R's own pieces: the field's structure applied to the
+    corrected gradient of `correction` gives the method's residual, at a point that is
+    not a root."""
+    method = nh.GonzalezR()
+    h = 0.05
+    data = method.setup(system, 0.0, h, y0, args, method.initial_carry(system, y0, args))[1]
+    first_root = _profile.gonzalez_r_pieces(system, method, y0, h, args)[1]["residual"]
+    u = 1.5 * first_root + 1e-3
+    functions, arguments = _profile.gonzalez_r_pieces(system, method, y0, h, args, unknowns=u)
+    zeta1 = data.zeta + data.scale * u
+    assert np.array_equal(arguments["correction"], zeta1)
+    corrected = functions["correction"](zeta1)
+    structure = data.reduced.at(0.5 * (data.zeta + zeta1), args)
+    by_pieces = u - h * structure.structure_times(corrected) / data.scale
+    residual = method.residual(u, data)
+    assert np.max(np.abs(residual)) > 1e-4
+    assert np.max(np.abs(by_pieces - residual)) <= 1e-13 * np.max(np.abs(residual))
+    # The correction's derivative at nearly equal points is finite (its Taylor form).
+    assert np.all(np.isfinite(functions["taylor_derivative"](arguments["taylor_derivative"])))
