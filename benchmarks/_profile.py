@@ -123,14 +123,14 @@ def derivative_parts(system, method, y0, dt, steps: int, repeats: int, loss_of, 
 _FREE_OPERATIONS = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast"}
 
 
-def hlo_counts(function, x) -> dict:
-    """The size of `function`'s program for an argument like `x`, compiled alone:
+def hlo_counts(compiled) -> dict:
+    """The size of a compiled program (`jax.jit(f).lower(x).compile()`):
     `hlo_instructions`, every instruction of its optimised HLO, fused ones included
     (what XLA compiles), and `operations`, those outside fused computations, less the
     ones that do no work (parameters, constants, tuples and their elements, bitcasts):
     each of these is one kernel or library call when the program runs, and on
     XLA:CPU the cost of a small step is about their number."""
-    text = jax.jit(function).lower(x).compile().as_text()
+    text = compiled.as_text()
     fused = set(re.findall(r"\bfusion\(.*?calls=%?([\w.\-]+)", text))
     counts = dict(hlo_instructions=0, operations=0)
     computation = None
@@ -228,11 +228,17 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
     return {name: f for name, (f, _) in pieces.items()}, {name: x for name, (_, x) in pieces.items()}
 
 
-def gonzalez_r_parts(system, method, y0, h, args=None, repeats: int = 200) -> dict:
+def gonzalez_r_parts(system, method, y0, h, args=None, repeats: int = 200, budget_s: float = 2.0) -> dict:
     """µs per call (`per_call_us`) and program size (`hlo_counts`) of each piece of a
-    GONZALEZ-R step (`gonzalez_r_pieces`)."""
+    GONZALEZ-R step (`gonzalez_r_pieces`), from a loop of `repeats` calls, or fewer
+    (at least five) where one call of the compiled piece takes more than
+    `budget_s / repeats` (the Jacobians of large systems)."""
     functions, arguments = gonzalez_r_pieces(system, method, y0, h, args)
-    return {
-        name: dict(us=per_call_us(function, arguments[name], repeats), **hlo_counts(function, arguments[name]))
-        for name, function in functions.items()
-    }
+    parts = {}
+    for name, function in functions.items():
+        compiled = jax.jit(function).lower(arguments[name]).compile()
+        start = time.perf_counter()
+        jax.block_until_ready(compiled(arguments[name]))
+        calls = min(repeats, max(5, int(budget_s / (time.perf_counter() - start))))
+        parts[name] = dict(us=per_call_us(function, arguments[name], calls), **hlo_counts(compiled))
+    return parts

@@ -263,8 +263,7 @@ def main():
     if "disk" in parts:
         results["rolling_disk_3d"] = _disk(methods, options.repeats)
     if "profile" in parts:
-        _gonzalez_r_profile(options.family, sizes, results)
-        write(results, options.out)
+        _gonzalez_r_profile(options.family, sizes, results, options.out)
     if "family" not in parts:
         write(results, options.out)
         return
@@ -305,10 +304,10 @@ def _growth_from_16(sizes_and_times) -> float:
     return float(np.polyfit(np.log([n for n, _ in large]), np.log([time for _, time in large]), 1)[0])
 
 
-def _gonzalez_r_profile(family_name, sizes, results):
+def _gonzalez_r_profile(family_name, sizes, results, output):
     """GONZALEZ-R's pieces at each size of the family (`_profile.gonzalez_r_parts`),
-    with each piece's growth exponent, into `results` (the sizes not run keep their
-    last rows)."""
+    with each piece's growth exponent, into `results` and the file `output` (the sizes
+    not run keep their last rows)."""
     family = FAMILIES[family_name][0]
     stored = results.get("gonzalez_r_parts", {}).get(family_name, {}).get("sizes", {})
     table = {int(n): row for n, row in stored.items() if int(n) not in sizes}
@@ -320,14 +319,18 @@ def _gonzalez_r_profile(family_name, sizes, results):
             + "; ".join(f"{name} {part['us']:.1f} µs, {part['operations']} operations" for name, part in table[n].items()),
             flush=True,
         )
-    table = dict(sorted(table.items()))
-    growth = {}
-    if sum(n >= 16 for n in table) >= 2:
-        growth = {name: _growth_from_16([(n, row[name]["us"]) for n, row in table.items()]) for name in table[max(table)]}
-        print("  growth from n = 16 on: " + ", ".join(f"{name} n^{value:.2f}" for name, value in growth.items()))
-    results.setdefault("gonzalez_r_parts", {})[family_name] = dict(
-        system=FAMILIES[family_name][1], h=H, sizes=table, growth_exponent_from_16=growth
-    )
+        table = dict(sorted(table.items()))
+        growth = {}
+        if sum(n >= 16 for n in table) >= 2:
+            growth = {
+                name: _growth_from_16([(n, row[name]["us"]) for n, row in table.items()]) for name in table[max(table)]
+            }
+        results.setdefault("gonzalez_r_parts", {})[family_name] = dict(
+            system=FAMILIES[family_name][1], h=H, sizes=table, growth_exponent_from_16=growth
+        )
+        # Written after each size, as the family's rows are.
+        write(results, output)
+    print("  growth from n = 16 on: " + ", ".join(f"{name} n^{value:.2f}" for name, value in growth.items()))
 
 
 def _completed_sizes(table, name) -> list[int]:

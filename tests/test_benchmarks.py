@@ -52,12 +52,12 @@ import _profile  # noqa: E402
 
 def test_hlo_counts_count_operations_outside_fusions():
     x = jnp.linspace(0.0, 1.0, 64)
-    elementwise = _profile.hlo_counts(lambda v: jnp.sin(3.0 * jnp.cos(v)) + 1.0, x)
+    elementwise = _profile.hlo_counts(jax.jit(lambda v: jnp.sin(3.0 * jnp.cos(v)) + 1.0).lower(x).compile())
     # One fused kernel of four or more instructions.
     assert elementwise["operations"] == 1
     assert elementwise["hlo_instructions"] >= 4
     matrix = jnp.outer(x, x)
-    with_products = _profile.hlo_counts(lambda v: jnp.sin(matrix @ jnp.cos(matrix @ v)), x)
+    with_products = _profile.hlo_counts(jax.jit(lambda v: jnp.sin(matrix @ jnp.cos(matrix @ v))).lower(x).compile())
     assert with_products["operations"] >= 3
 
 
