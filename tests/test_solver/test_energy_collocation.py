@@ -99,7 +99,10 @@ def test_energy_and_symmetry_on_a_skew_gradient_system_at_large_steps():
         *_, root = method.solve_step(system, 0.0, 0.5, x0, None, state)
         x1, _, _, state, _ = method.step(system, 0.0, 0.5, x0, None, state, False)
         back, *_ = method.step(system, 0.5, 0.0, x1, None, state, False)
-        np.testing.assert_allclose(back, x0, rtol=0, atol=1e-14)
+        # Returned to roundoff, amplified by the stages: at h = 0.5, orders 4 to 12 came
+        # back to 1, 1.5, 3.5, 11.5 and 47.5 eps on an AMD EPYC (no AVX-512), the high
+        # orders' large tableau coefficients cancelling in the stages' sums.
+        np.testing.assert_allclose(back, x0, rtol=0, atol=100 * np.finfo(back.dtype).eps)
         if order == 4:
             tableau = method.tableau()
             increments = root.reshape(method.stages, -1) * (1 + jnp.abs(x0))
