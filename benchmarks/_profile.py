@@ -190,8 +190,8 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
     zeta1 = zeta + scale * root
     midpoint = 0.5 * (zeta + zeta1)
     n = y0[0].shape[0]
-    momentum = reduced.at(midpoint, args).momentum
-    gradient = reduced.at(midpoint, args).gradient
+    at_midpoint = reduced.at(midpoint, args)
+    momentum, gradient = at_midpoint.momentum, at_midpoint.gradient
 
     def frame(q):
         return reduced.frame(q, args).transpose_times(momentum)
