@@ -156,7 +156,8 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
 
     - `frame`: $X(\bar q)^Tp$, the QR of $A(\bar q)^T$ and one product with the frame;
     - `frame_derivative`: $Jv$ and $J^Tw$, $J = \partial_q(X^Tp)$ at $\bar q$, by one
-      linearisation of $q \mapsto X(q)^Tp$ applied forward and transposed, as
+      linearisation of the factorisation at $\bar q$ composed with that of $X^Tp$ in
+      its reflectors, applied forward and transposed, as
       `nhjax._reduced.ReducedSystem.at` forms them;
     - `field`: the residual with the midpoint gradient alone (no Gonzalez correction),
       $u - h\,\Pi(\bar\zeta)\nabla\mathcal{H}(\bar\zeta)/S$;
@@ -179,6 +180,7 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
     is the residual at $u$ (`tests/test_benchmarks.py`)."""
     from nhjax import _replay
     from nhjax._discrete_gradient import gonzalez_correction
+    from nhjax._householder import HouseholderFrame
 
     dt = jnp.asarray(h)
     root = unknowns
@@ -197,7 +199,9 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
         return reduced.frame(q, args).transpose_times(momentum)
 
     def frame_derivative(q):
-        along, linear = jax.linearize(frame, q)
+        vectors, vectors_along = jax.linearize(lambda x: reduced.frame(x, args).vectors, q)
+        along, product_along = jax.linearize(lambda w: HouseholderFrame(w).transpose_times(momentum), vectors)
+        linear = lambda v: product_along(vectors_along(v))  # noqa: E731
         return linear(q), jax.linear_transpose(linear, q)(along)[0]
 
     def correction(end, branch="rarely"):

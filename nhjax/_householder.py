@@ -340,6 +340,14 @@ def householder_frame_operator(a_t: Float[Array, "n k"], signs: Float[Array, " k
     return HouseholderFrame(_reflectors(a_t, signs)[0])
 
 
+def householder_stable_frame(a_t: Float[Array, "n k"]) -> tuple[HouseholderFrame, Float[Array, " k"]]:
+    """The frame of `householder_frame_operator` with the stable signs, and those signs
+    (`householder_signs`), from one factorisation: with the signs it returns, the
+    factorisation with given signs is this one, value for value."""
+    vectors, _, _, used = _reflectors(a_t, None)
+    return HouseholderFrame(vectors), used
+
+
 def householder_frame(
     a_t: Float[Array, "n k"], signs: Float[Array, " k"]
 ) -> tuple[Float[Array, "n m"], Float[Array, " k"]]:

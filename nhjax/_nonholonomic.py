@@ -16,7 +16,13 @@ from jaxtyping import Array, Float
 
 from ._lagrangian import Lagrangian, LegendreAtPosition, LegendreHamiltonian
 from ._linalg import is_quadratic_form, solve_spd
-from ._householder import HouseholderFrame, householder_frame_operator, householder_pivots, householder_signs
+from ._householder import (
+    HouseholderFrame,
+    householder_frame_operator,
+    householder_pivots,
+    householder_signs,
+    householder_stable_frame,
+)
 from ._results import RESULTS, first_failure
 from ._reduced import Derivative, ReducedSystem
 from ._user_function import traced_once
@@ -314,6 +320,12 @@ class NonholonomicSystem(AbstractSystem):
     def frame_signs(self, q, args) -> Float[Array, " k"]:
         """The Householder sign choices at `q` (see `nhjax._householder`)."""
         return householder_signs(self.constraints(q, args).T)
+
+    def stable_frame(self, q, args) -> tuple[HouseholderFrame, Float[Array, " k"]]:
+        """`frame_operator(q, args, frame_signs(q, args))` and `frame_signs(q, args)`,
+        from one factorisation: what a step that takes its signs at its start needs
+        there."""
+        return householder_stable_frame(self.constraints(q, args).T)
 
     def frame(self, q, args, signs) -> Float[Array, "n m"]:
         """$X(q; s)$: orthonormal columns spanning $\\mathcal{D}_q = \\ker A(q)$."""

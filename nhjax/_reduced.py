@@ -208,15 +208,19 @@ class ReducedSystem(eqx.Module):
         """The frame $X(q; s)$ with this system's signs, not formed."""
         return self.system.frame_operator(q, args, self.signs)
 
-    def to_reduced(self, y, args) -> Float[Array, " n+m"]:
-        r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop)."""
+    def to_reduced(self, y, args, frame: HouseholderFrame | None = None) -> Float[Array, " n+m"]:
+        r"""$\zeta = (q, \rho)$ with $\rho = X^T p$, eq. (ptildetop). `frame`: $X(q)$
+        where the caller has it (`None`: factorised here)."""
         q, p = y
-        return jnp.concatenate([q, self.frame(q, args).transpose_times(p)])
+        frame = self.frame(q, args) if frame is None else frame
+        return jnp.concatenate([q, frame.transpose_times(p)])
 
-    def from_reduced(self, zeta, args) -> tuple[Array, Array]:
-        r"""$(q, p)$ from $\zeta = (q, \rho)$, eq. (ptoptilde)."""
+    def from_reduced(self, zeta, args, frame: HouseholderFrame | None = None) -> tuple[Array, Array]:
+        r"""$(q, p)$ from $\zeta = (q, \rho)$, eq. (ptoptilde); `frame` as for
+        `to_reduced`."""
         q, rho = split_reduced(zeta, self.signs)
-        return q, self.momentum_in_frame(q, self.frame(q, args), rho, args)[0]
+        frame = self.frame(q, args) if frame is None else frame
+        return q, self.momentum_in_frame(q, frame, rho, args)[0]
 
     def hamiltonian(self, zeta, args) -> Float[Array, ""]:
         if metric_is(self.metric, "identity"):
@@ -225,13 +229,13 @@ class ReducedSystem(eqx.Module):
         q, p = self.from_reduced(zeta, args)
         return self.system.hamiltonian(q, p, args)
 
-    def start_of_step(self, zeta, args):
+    def start_of_step(self, zeta, args, frame: HouseholderFrame | None = None):
         r"""What `energy_segment` needs of a step's start $\zeta$:
         $\mathcal{H}(\zeta)$, and the canonical momentum $p(\zeta)$ (`None` for
-        $M = I$, whose $\mathcal{H}$ needs none)."""
+        $M = I$, whose $\mathcal{H}$ needs none); `frame` as for `to_reduced`."""
         if metric_is(self.metric, "identity"):
             return self.hamiltonian(zeta, args), None
-        q, p = self.from_reduced(zeta, args)
+        q, p = self.from_reduced(zeta, args, frame)
         return self.system.hamiltonian(q, p, args), p
 
     def energy_segment(self, zeta, momentum, zeta1, args):
@@ -296,15 +300,27 @@ class ReducedSystem(eqx.Module):
         $q \mapsto X(q)^Tp$ ($k$ reflections of one vector, through the QR), applied
         forward ($Jv$) and transposed ($J^Tw$), so that a field evaluation costs a few
         passes through the QR instead of $n$ tangents of it, which made GONZALEZ-R's
-        cost grow like $n^4$ (`benchmarks/scaling.py`). With `"central_difference"`
+        cost grow like $n^4$ (`benchmarks/scaling.py`). The factorisation at $q$ is
+        linearised once, and its reflectors are the frame: $Jv$ is the derivative of
+        $X^Tp$ in the reflectors along theirs along $v$. Linearising
+        $q \mapsto X(q)^Tp$ whole factorised $A(q)^T$ a second time beside the frame's
+        own factorisation, which XLA did not merge. With `"central_difference"`
         $J$ is formed by differences, the paper's remark. `contracted`: a given $J$,
         that of another point (`nhjax.GonzalezR.chord_jacobian`), in place of this
         point's."""
         q, rho = split_reduced(zeta, self.signs)
-        frame = self.frame(q, args)
+        linearised = contracted is None and self.derivative == "autodiff"
+        if linearised:
+            # The factorisation once, linearised: its reflectors give the frame, and
+            # J v is the derivative of X^T p along the reflectors' derivative along v.
+            vectors, vectors_along = jax.linearize(lambda x: self.frame(x, args).vectors, q)
+            frame = HouseholderFrame(vectors)
+        else:
+            frame = self.frame(q, args)
         p, y = self.momentum_in_frame(q, frame, rho, args)
-        if contracted is None and self.derivative == "autodiff":
-            _, times = jax.linearize(lambda x: self.frame(x, args).transpose_times(p), q)
+        if linearised:
+            _, product_along = jax.linearize(lambda w: HouseholderFrame(w).transpose_times(p), vectors)
+            times = lambda v: product_along(vectors_along(v))  # noqa: E731
             transpose = jax.linear_transpose(times, q)
             transpose_times = lambda w: transpose(w)[0]  # noqa: E731
         else:
@@ -355,11 +371,14 @@ class ReducedSystem(eqx.Module):
         tangent. So it is the caller's choice."""
         system = self.system
         q, rho = split_reduced(zeta, self.signs)
-        frame = FormedFrame(self.frame(q, args).matrix())
         turn = None
         if frame_turn:
-            motion = frame.times(self.momentum_in_frame(q, frame, rho, args)[1])
-            turn = jax.jvp(lambda x: self.frame(x, args).matrix(), (q,), (motion,))[1]
+            # The frame and its derivative from one linearised factorisation.
+            matrix, matrix_along = jax.linearize(lambda x: self.frame(x, args).matrix(), q)
+            frame = FormedFrame(matrix)
+            turn = matrix_along(frame.times(self.momentum_in_frame(q, frame, rho, args)[1]))
+        else:
+            frame = FormedFrame(self.frame(q, args).matrix())
 
         def field_in_fixed_frame(z):
             x, rho = split_reduced(z, self.signs)

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 import nhjax._householder
-from nhjax._householder import householder_frame, householder_frame_operator, householder_pivots, householder_signs
+from nhjax._householder import (
+    householder_frame,
+    householder_frame_operator,
+    householder_pivots,
+    householder_signs,
+    householder_stable_frame,
+)
 
 
 def _matrix(seed, n, k):
@@ -62,6 +68,43 @@ def test_frame_derivative_by_autodiff_matches_central_differences():
     )
     np.testing.assert_allclose(forward, central, atol=1e-9)
     np.testing.assert_allclose(forward, reverse, atol=1e-14)
+
+
+@pytest.mark.parametrize("shape", [(5, 2), (9, 6)])
+def test_the_stable_frame_is_the_frame_with_the_signs_it_returns(shape):
+    """One factorisation for a step's signs and its frame at the start: the frame with
+    the stable signs, and its derivative, are those of the factorisation given the
+    signs it returns (to rounding: the two programs may fuse differently), and the
+    signs are `householder_signs`'. (9, 6): more reflections than are unrolled
+    (LAPACK's, differentiated in closed form)."""
+    n, k = shape
+    a_t, direction = _matrix(3, n, k), _matrix(4, n, k)
+    v = jnp.linspace(-1.0, 1.0, n)
+
+    def stable(a):
+        frame, signs = householder_stable_frame(a)
+        return frame.vectors, frame.transpose_times(v), signs
+
+    (vectors, products, signs), (vectors_dot, products_dot, _) = jax.jit(
+        lambda a, d: jax.jvp(stable, (a,), (d,))
+    )(a_t, direction)
+
+    def given(a):
+        frame = householder_frame_operator(a, signs)
+        return frame.vectors, frame.transpose_times(v)
+
+    (given_vectors, given_products), (given_vectors_dot, given_products_dot) = jax.jit(
+        lambda a, d: jax.jvp(given, (a,), (d,))
+    )(a_t, direction)
+    np.testing.assert_array_equal(signs, householder_signs(a_t))
+    for ours, theirs in [
+        (vectors, given_vectors),
+        (products, given_products),
+        (vectors_dot, given_vectors_dot),
+        (products_dot, given_products_dot),
+    ]:
+        np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-14)
+        assert np.max(np.abs(ours)) > 0.1
 
 
 def test_frame_products_and_their_derivative_match_the_formed_frame():

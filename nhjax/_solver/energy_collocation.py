@@ -285,30 +285,33 @@ class EnergyPreservingCollocation(AbstractMethod):
             f"SkewGradientSystem, got {type(system).__name__}."
         )
 
-    def _signs(self, system, y0, args):
+    def _signs_and_frame(self, system, y0, args):
+        """The frame's signs at the start of a step (none for a `SkewGradientSystem`),
+        and the frame with them there, from one factorisation (`None` without one)."""
         if isinstance(system, NonholonomicSystem):
-            return lax.stop_gradient(system.frame_signs(y0[0], args))
-        return jnp.zeros((0,), dtype=jax.tree.leaves(y0)[0].dtype)
+            frame, signs = system.stable_frame(y0[0], args)
+            return lax.stop_gradient(signs), frame
+        return jnp.zeros((0,), dtype=jax.tree.leaves(y0)[0].dtype), None
 
     def initial_carry(self, system, y0, args):
-        signs = self._signs(system, y0, args)
+        signs, frame = self._signs_and_frame(system, y0, args)
         form = self._form(system, y0, args, signs)
-        start = form.to_reduced(y0, args) if isinstance(form, ReducedSystem) else y0
+        start = form.to_reduced(y0, args, frame) if isinstance(form, ReducedSystem) else y0
         unknown = jnp.full((self.stages, start.shape[0]), jnp.nan, dtype=start.dtype)
         no_history = jnp.full((HISTORY, start.shape[0]), jnp.nan, dtype=start.dtype)
         return _Carry(start, signs, unknown, jnp.full((), jnp.nan, dtype=start.dtype), no_history)
 
     def setup(self, system, t, h, y0, args, carry):
-        signs = self._signs(system, y0, args)
+        signs, frame = self._signs_and_frame(system, y0, args)
         form = self._form(system, y0, args, signs)
         if isinstance(form, ReducedSystem):
             # As GONZALEZ-R: a step starts from the last step's zeta' itself where the
             # state is the one it returned and the signs are the same (p -> rho -> p
-            # rounds with a bias).
+            # rounds with a bias); the q of x is q either way, where the frame is.
             q = y0[0]
             continues = jnp.all(signs == carry.signs) & jnp.all(carry.end[: q.shape[0]] == q)
-            x = jnp.where(continues, carry.end, form.to_reduced(y0, args))
-            energy, momentum = form.start_of_step(x, args)
+            x = jnp.where(continues, carry.end, form.to_reduced(y0, args, frame))
+            energy, momentum = form.start_of_step(x, args, frame)
         else:
             continues = jnp.all(carry.end == y0)
             x, momentum = y0, None

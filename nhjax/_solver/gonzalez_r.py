@@ -240,9 +240,9 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         velocities $(\zeta' - \zeta)/h$ of the last two steps and their signed sizes
         $h$, and the displacements $\zeta' - \zeta$ of the last `HISTORY` steps of one
         size, for the predictors (NaN until there are any)."""
-        q, _ = y0
-        signs = lax.stop_gradient(system.frame_signs(q, args))
-        zeta = ReducedSystem(system, signs).to_reduced(y0, args)
+        frame, signs = system.stable_frame(y0[0], args)
+        signs = lax.stop_gradient(signs)
+        zeta = ReducedSystem(system, signs).to_reduced(y0, args, frame)
         unknown = jnp.full_like(zeta, jnp.nan)
         no_step = jnp.full((), jnp.nan, dtype=zeta.dtype)
         no_history = jnp.full((HISTORY,) + zeta.shape, jnp.nan, zeta.dtype)
@@ -253,12 +253,15 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         # zeta = (q, X(q)^T p) recomputed from the (q, p) it returned: the map
         # p -> rho -> p rounds with a bias, which over many steps would drift H. The
         # recomputed zeta is used where that does not apply: when the frame signs change
-        # at q, and when y0 is not the state the previous step returned.
+        # at q, and when y0 is not the state the previous step returned. Either way the
+        # q of zeta is q itself, and one factorisation at q gives the signs and the
+        # frame that both the recomputed zeta and the start's momentum need.
         q, _ = y0
-        signs = lax.stop_gradient(system.frame_signs(q, args))
+        frame, signs = system.stable_frame(q, args)
+        signs = lax.stop_gradient(signs)
         continues = jnp.all(signs == carry.signs) & jnp.all(carry.zeta[: q.shape[0]] == q)
         reduced = self._reduced(system, signs, h, y0, args)
-        zeta = jnp.where(continues, carry.zeta, reduced.to_reduced(y0, args))
+        zeta = jnp.where(continues, carry.zeta, reduced.to_reduced(y0, args, frame))
         # The predictor: the mean velocity of this step extrapolated linearly from those
         # of the two before, an O(h^2) error in the velocity, so the guess is O(h^3) from
         # the root; otherwise (the first two steps, a restart, a change of signs, in
@@ -303,7 +306,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         guess = h * velocity / scale
         previous = jnp.where(continues, carry.last_velocity, jnp.nan)
         previous_step = jnp.where(continues, carry.last_step, jnp.nan)
-        energy, momentum = reduced.start_of_step(zeta, args)
+        energy, momentum = reduced.start_of_step(zeta, args, frame)
         data = _StepData(
             reduced, zeta, h, scale, args, energy, momentum, previous, previous_step, midpoint_time, displacements
         )
