@@ -414,3 +414,34 @@ def test_the_metric_shortcuts_give_the_general_method(metric):
         assert float(jnp.max(jnp.abs(solution.constraint))) <= 1e-13
         for leaf, general_leaf in zip(solution.ys, general.ys):
             np.testing.assert_allclose(leaf, general_leaf, rtol=0, atol=1e-12, err_msg=name)
+
+
+def _calls(jaxpr, name: str) -> int:
+    """How many calls of the jitted function `name` a jaxpr makes, in its sub-jaxprs too."""
+    total = 0
+    for equation in jaxpr.eqns:
+        total += equation.primitive.name in ("pjit", "jit") and equation.params.get("name") == name
+        for value in equation.params.values():
+            for inner in value if isinstance(value, (tuple, list)) else [value]:
+                inner = getattr(inner, "jaxpr", inner)
+                if hasattr(inner, "eqns"):
+                    total += _calls(inner, name)
+    return total
+
+
+def test_a_step_starts_from_one_factorisation():
+    """A step's start takes its frame signs, its reduced state and its momentum from one
+    factorisation of A(q)^T (`NonholonomicSystem.stable_frame`), as does the run's first
+    carry: Euler's disk, whose metric depends on q (the momentum needs the frame)."""
+    example = nh.examples.rolling_disk_3d()
+    system = example.canonical
+    y0 = example.state(**scaling.DISK_START)
+    carry = METHOD.initial_carry(system, y0, example.args)
+
+    def setup(y, carry):
+        guess, data = METHOD.setup(system, 0.0, 0.01, y, example.args, carry)
+        return guess, data.zeta, data.energy, data.momentum
+
+    assert _calls(jax.make_jaxpr(setup)(y0, carry).jaxpr, "_reflectors") == 1
+    first = jax.make_jaxpr(lambda y: METHOD.initial_carry(system, y, example.args))(y0)
+    assert _calls(first.jaxpr, "_reflectors") == 1
