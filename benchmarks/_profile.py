@@ -157,8 +157,8 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
     - `frame`: $X(\bar q)^Tp$, the QR of $A(\bar q)^T$ and one product with the frame;
     - `frame_derivative`: $Jv$ and $J^Tw$, $J = \partial_q(X^Tp)$ at $\bar q$, by one
       linearisation of the factorisation at $\bar q$ composed with that of $X^Tp$ in
-      its reflectors, applied forward and transposed, as
-      `nhjax._reduced.ReducedSystem.at` forms them;
+      its reflectors, applied forward and transposed
+      (`nhjax._reduced.ReducedSystem.linearised_frame`, as `at` forms them);
     - `field`: the residual with the midpoint gradient alone (no Gonzalez correction),
       $u - h\,\Pi(\bar\zeta)\nabla\mathcal{H}(\bar\zeta)/S$;
     - `correction`: what the Gonzalez correction adds to it, given the midpoint
@@ -180,7 +180,6 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
     is the residual at $u$ (`tests/test_benchmarks.py`)."""
     from nhjax import _replay
     from nhjax._discrete_gradient import gonzalez_correction
-    from nhjax._householder import HouseholderFrame
 
     dt = jnp.asarray(h)
     root = unknowns
@@ -199,10 +198,9 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
         return reduced.frame(q, args).transpose_times(momentum)
 
     def frame_derivative(q):
-        vectors, vectors_along = jax.linearize(lambda x: reduced.frame(x, args).vectors, q)
-        along, product_along = jax.linearize(lambda w: HouseholderFrame(w).transpose_times(momentum), vectors)
-        linear = lambda v: product_along(vectors_along(v))  # noqa: E731
-        return linear(q), jax.linear_transpose(linear, q)(along)[0]
+        frame, contracted_products = reduced.linearised_frame(q, args)
+        times, transpose_times = contracted_products(momentum)
+        return times(q), transpose_times(frame.transpose_times(momentum))
 
     def correction(end, branch="rarely"):
         energy1, segment = reduced.energy_segment(zeta, data.momentum, end, args)

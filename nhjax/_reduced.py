@@ -311,18 +311,12 @@ class ReducedSystem(eqx.Module):
         q, rho = split_reduced(zeta, self.signs)
         linearised = contracted is None and self.derivative == "autodiff"
         if linearised:
-            # The factorisation once, linearised: its reflectors give the frame, and
-            # J v is the derivative of X^T p along the reflectors' derivative along v.
-            vectors, vectors_along = jax.linearize(lambda x: self.frame(x, args).vectors, q)
-            frame = HouseholderFrame(vectors)
+            frame, contracted_products = self.linearised_frame(q, args)
         else:
             frame = self.frame(q, args)
         p, y = self.momentum_in_frame(q, frame, rho, args)
         if linearised:
-            _, product_along = jax.linearize(lambda w: HouseholderFrame(w).transpose_times(p), vectors)
-            times = lambda v: product_along(vectors_along(v))  # noqa: E731
-            transpose = jax.linear_transpose(times, q)
-            transpose_times = lambda w: transpose(w)[0]  # noqa: E731
+            times, transpose_times = contracted_products(p)
         else:
             if contracted is None:
                 contracted = self.contracted_frame_derivative(q, p, args)
@@ -332,6 +326,21 @@ class ReducedSystem(eqx.Module):
         if not (metric_is(self.metric, "identity") and self.derivative == "autodiff"):
             grad_q = grad_q - transpose_times(y)
         return ReducedPoint(frame, p, jnp.concatenate([grad_q, y]), times, transpose_times)
+
+    def linearised_frame(self, q, args) -> tuple[HouseholderFrame, Callable]:
+        r"""$X(q)$ from one linearised factorisation of $A(q)^T$, and a function that
+        gives, for a momentum $p$, the products with $J = \partial_q(X^Tp)$ at fixed
+        $p$ and with $J^T$ (`at`): $Jv$ is the derivative of $X^Tp$ in the reflectors
+        along the reflectors' own derivative along $v$, and $J^Tw$ its transpose."""
+        vectors, vectors_along = jax.linearize(lambda x: self.frame(x, args).vectors, q)
+
+        def contracted_products(p):
+            _, product_along = jax.linearize(lambda w: HouseholderFrame(w).transpose_times(p), vectors)
+            times = lambda v: product_along(vectors_along(v))  # noqa: E731
+            transpose = jax.linear_transpose(times, q)
+            return times, lambda w: transpose(w)[0]
+
+        return HouseholderFrame(vectors), contracted_products
 
     def field_jacobian(self, zeta, t, args, frame_turn: bool = False) -> Float[Array, "N N"]:
         r"""An approximation of the derivative of the field $\Pi\nabla\mathcal{H}$ (plus
