@@ -246,10 +246,12 @@ def open_run(directory: pathlib.Path, manifest: dict) -> None:
     path = directory / _MANIFEST
     if path.exists():
         stored = json.loads(path.read_text())
+        # A key written by only one of the two runs (such as `devices`) differs too.
+        keys = [*manifest, *(key for key in stored if key not in manifest)]
         differences = [
-            f"  {key}{_MEANINGS.get(key, '')}: {stored.get(key)!r} there, {value!r} here"
-            for key, value in manifest.items()
-            if stored.get(key) != value
+            f"  {key}{_MEANINGS.get(key, '')}: {stored.get(key)!r} there, {manifest.get(key)!r} here"
+            for key in keys
+            if stored.get(key) != manifest.get(key)
         ]
         if differences:
             raise ValueError(

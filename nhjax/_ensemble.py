@@ -12,7 +12,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
-from ._arguments import check_args, check_step_counts, check_step_size, trace_floats
+from ._arguments import check_args, check_step_counts, check_step_size, state_dtype, trace_floats
 from ._integrate import integrate
 from ._solution import Solution
 from ._results import result_codes, RESULTS, SUCCESS
@@ -89,12 +89,7 @@ def integrate_ensemble(
         system.check_shapes(jax.tree.map(lambda leaf: leaf[0], y0s), args)
     except ValueError as error:
         raise ValueError(f"Each state along y0s's leading batch axis: {error}") from error
-    devices = jax.devices() if devices is None else list(devices)
-    if not devices:
-        raise ValueError("devices must name at least one device.")
-    if len(set(devices)) != len(devices):
-        repeated = sorted({str(device) for device in devices if devices.count(device) > 1})
-        raise ValueError(f"devices must be distinct (each takes its own share of the batch); repeated: {', '.join(repeated)}.")
+    devices = checked_devices(jax.devices() if devices is None else devices)
     mesh = Mesh(np.asarray(devices), (_AXIS,))
     padded_size = -(-size // len(devices)) * len(devices)
     padded = jax.tree.map(
@@ -112,14 +107,17 @@ def integrate_ensemble(
         padded = jax.tree.map(lambda leaf: _global_array(np.asarray(leaf), sharding), padded)
     else:
         padded = jax.device_put(padded, sharding)
+    # dt, t0 and the check as arrays (dt and t0 in the states' dtype, as
+    # `nhjax.integrate` casts them), so that runs differing in them share a program.
+    dtype = state_dtype(y0s)
     solution = _sharded_run(
         system,
         method,
         padded,
-        dt,
-        t0,
+        jnp.asarray(dt, dtype=dtype),
+        jnp.asarray(t0, dtype=dtype),
         trace_floats(args),
-        check_constraint,
+        jnp.asarray(check_constraint, dtype=bool),
         mesh=mesh,
         n_steps=int(n_steps),
         save_every=int(save_every),
@@ -134,6 +132,17 @@ def integrate_ensemble(
             codes = jax.tree.map(jnp.asarray, multihost_utils.process_allgather(codes, tiled=True))
         _raise_failures(codes)
     return solution
+
+
+def checked_devices(devices: Sequence[jax.Device]) -> list[jax.Device]:
+    """`devices` as a list, refused if empty or if a device is named twice."""
+    devices = list(devices)
+    if not devices:
+        raise ValueError("devices must name at least one device.")
+    if len(set(devices)) != len(devices):
+        repeated = sorted({str(device) for device in devices if devices.count(device) > 1})
+        raise ValueError(f"devices must be distinct (each takes its own share of the batch); repeated: {', '.join(repeated)}.")
+    return devices
 
 
 def _global_array(host: np.ndarray, sharding: NamedSharding) -> jax.Array:
@@ -184,4 +193,4 @@ def _sharded_run(system, method, y0s, dt, t0, args, check_constraint, *, mesh, n
         in_specs=(PartitionSpec(_AXIS), replicated, replicated, replicated, replicated),
         out_specs=PartitionSpec(_AXIS),
         check_vma=False,
-    )(y0s, jnp.asarray(dt), jnp.asarray(t0), arrays, jnp.asarray(check_constraint))
+    )(y0s, dt, t0, arrays, check_constraint)

@@ -27,6 +27,7 @@ from ._chunk_files import (
     write_atomically,
 )
 from ._arguments import check_args, check_step_counts, check_step_size, trace_floats
+from ._ensemble import checked_devices, integrate_ensemble
 from ._integrate import integrate
 from ._solution import Solution
 from ._results import SUCCESS
@@ -51,6 +52,7 @@ def run_chunked(
     chunk_steps=None,
     progress=True,
     throw=True,
+    devices=None,
 ) -> Solution:
     r"""`nhjax.integrate(system, method, y0, dt, n_steps, args, save_every)` run in
     chunks of `chunk_steps` steps, each written to `directory` as it finishes, so that
@@ -103,7 +105,15 @@ def run_chunked(
     **Batches.** `y0` may hold a batch of states along a leading axis (every leaf one
     dimension more than a state of `system`): each chunk is then one `jax.vmap`ped
     program, and every array of the `Solution` has the batch axis first, as from
-    `jax.vmap(nhjax.integrate)`.
+    `jax.vmap(nhjax.integrate)`. Where `devices` (default: `jax.local_devices()`, this
+    process's) holds more than one device, each chunk is split over them as
+    `nhjax.integrate_ensemble` splits a batch: each device runs its share at the same
+    time, so a machine's cores or GPUs share the work (a CPU gives XLA one device per
+    core when asked, as the `nhjax` command does). The split changes rounding (each
+    device's batch is vectorised at its own size), so the manifest then records the
+    number of devices, and a run is resumed only on as many; on one device the manifest
+    and the numbers are those of a plain `vmap`. A single trajectory runs on the
+    default device whatever `devices` holds.
 
     **Failures.** A chunk whose result is not successful (for a batch: for any
     trajectory) is written like the others, so that a rerun reports the failure at once
@@ -120,6 +130,7 @@ def run_chunked(
     - `chunk_steps`: steps per chunk, a positive multiple of `save_every` (at most
         `n_steps` are used); `None` for the default above.
     - `progress`: a tqdm bar over the steps, advanced chunk by chunk.
+    - `devices`: the devices a batch's chunks are split over (see **Batches**).
 
     Returns the `Solution` of the whole run, the chunks' saves concatenated; its `stats`
     add up over the chunks (`max_root_find_steps` is the largest of them).
@@ -161,6 +172,10 @@ def run_chunked(
         dtype=str(dtype),
         batch=batch,
     )
+    devices = checked_devices(jax.local_devices() if devices is None else devices)
+    split = batch is not None and len(devices) > 1
+    if split:
+        manifest["devices"] = len(devices)
     with run_lock(directory):
         open_run(directory, manifest)
         run = run_id(manifest)
@@ -190,10 +205,17 @@ def run_chunked(
                 if chunk is None:
                     # t0 = first_step * dt, exactly as nhjax.integrate spaces its steps.
                     t0 = dt * jnp.asarray(first_step, dtype=dtype)
-                    solution = _run_chunk(
-                        system, method, jax.tree.unflatten(treedef, state), dt, t0, traced_args,
-                        n_steps=length, save_every=save_every, batched=batch is not None,
-                    )
+                    start = jax.tree.unflatten(treedef, state)
+                    if split:
+                        solution = integrate_ensemble(
+                            system, method, start, dt, length, traced_args, save_every, throw=False,
+                            t0=t0, check_constraint=index == 0, devices=devices,
+                        )
+                    else:
+                        solution = _run_chunk(
+                            system, method, start, dt, t0, traced_args,
+                            n_steps=length, save_every=save_every, batched=batch is not None,
+                        )
                     chunk = chunk_arrays(solution, keep_first=index == 0, time_axis=time_axis)
                     stored = with_identity(chunk, identity)
                     write_atomically(path, lambda file: np.savez(file, **stored))

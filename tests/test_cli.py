@@ -196,6 +196,33 @@ def test_the_command_compiles_whole_loops_into_one_function(monkeypatch, tmp_pat
     assert hoisted == [False, True]
 
 
+def test_the_command_asks_for_one_cpu_device_per_usable_core(monkeypatch, tmp_path):
+    """As many XLA:CPU devices as the cores this process may use, none asked for on one
+    core or where `JAX_NUM_CPU_DEVICES` sets the count; a count in `XLA_FLAGS` stays
+    the user's; and XLA gives a fresh process the devices asked for."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.delenv("JAX_NUM_CPU_DEVICES", raising=False)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 2, 5}, raising=False)
+    assert _nhjax_command.one_device_per_core() == ["--xla_force_host_platform_device_count=3"]
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {4}, raising=False)
+    assert _nhjax_command.one_device_per_core() == []
+    monkeypatch.setenv("JAX_NUM_CPU_DEVICES", "2")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert _nhjax_command.one_device_per_core() == []
+    monkeypatch.delenv("JAX_NUM_CPU_DEVICES")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    _nhjax_command.add_xla_flags(_nhjax_command.one_device_per_core())
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"
+    monkeypatch.delenv("XLA_FLAGS")
+    _nhjax_command.add_xla_flags(_nhjax_command.one_device_per_core())
+    environment = dict(os.environ, JAX_PLATFORMS="cpu")
+    devices = subprocess.run(
+        [sys.executable, "-c", "import jax; print(len(jax.devices()))"],
+        env=environment, capture_output=True, text=True, check=True,
+    ).stdout
+    assert int(devices) == 2
+
+
 def test_the_flag_probe_is_asked_once_per_jaxlib_version(monkeypatch, tmp_path):
     """`xla_knows` remembers each answer for this jaxlib in the user's cache, and asks a
     child process again where the cache is unreadable."""

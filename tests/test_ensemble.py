@@ -6,6 +6,7 @@ import textwrap
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import nhjax as nh
@@ -107,6 +108,21 @@ def test_bad_input(y0s, dt, match):
         nh.integrate_ensemble(GEARBOX.canonical, METHOD, y0s, dt, 10)
 
 
+def test_compiles_once_for_new_step_sizes_start_times_and_checks():
+    """dt, t0 and check_constraint reach the sharded program as arrays: a run that
+    changes only them compiles nothing again (a chunked run's later chunks change t0
+    and drop the check), and its numbers are those of a fresh `integrate`."""
+    run = nh._ensemble._sharded_run._cached
+    states = _states(2)
+    nh.integrate_ensemble(GEARBOX.canonical, METHOD, states, 0.1, 10)
+    programs = run._cache_size()
+    later = nh.integrate_ensemble(GEARBOX.canonical, METHOD, states, 0.05, 10, t0=3.0, check_constraint=False)
+    assert run._cache_size() == programs
+    alone = nh.integrate(GEARBOX.canonical, METHOD, jax.tree.map(lambda y: y[1], states), 0.05, 10, t0=3.0)
+    np.testing.assert_allclose(later.ts[1], alone.ts, rtol=1e-15)
+    assert _max_difference(jax.tree.map(lambda y: y[1], later.ys), alone.ys) <= 1e-13
+
+
 def test_a_device_named_twice_is_refused():
     device = jax.devices()[0]
     with pytest.raises(ValueError, match=f"devices must be distinct .*repeated: {device}"):
@@ -135,6 +151,25 @@ _TWO_DEVICES = textwrap.dedent(
             devices_holding=len(sharded.ys[0].sharding.device_set),
             spec=list(sharded.ys[0].sharding.spec),
         )
+    from nhjax._runner import run_chunked
+    import pathlib, tempfile
+    states = jax.vmap(gearbox.random_initial_state)(jax.random.split(jax.random.key(1), 4))
+    directory = pathlib.Path(tempfile.mkdtemp()) / "chunks"
+    programs = nh._ensemble._sharded_run._cached._cache_size()
+    chunked = run_chunked(gearbox.canonical, method, states, 0.1, 40, directory=directory, save_every=10, chunk_steps=20, progress=False)
+    alone = jax.vmap(lambda y: nh.integrate(gearbox.canonical, method, y, 0.1, 40, save_every=10))(states)
+    try:
+        run_chunked(gearbox.canonical, method, states, 0.1, 40, directory=directory, save_every=10, chunk_steps=20, progress=False, devices=jax.devices()[:1])
+        refused = ""
+    except ValueError as error:
+        refused = str(error)
+    out["chunked"] = dict(
+        difference=max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(chunked.ys), jax.tree.leaves(alone.ys))),
+        shape=list(chunked.ys[0].shape),
+        manifest_devices=json.loads((directory / "manifest.json").read_text()).get("devices"),
+        programs=nh._ensemble._sharded_run._cached._cache_size() - programs,
+        refused=refused,
+    )
     print(json.dumps(out))
     """
 )
@@ -142,7 +177,8 @@ _TWO_DEVICES = textwrap.dedent(
 
 def test_two_cpu_devices_give_the_unsharded_result():
     """A fresh process with two CPU devices: the batch split over both (even, and odd
-    with padding) gives the numbers of one `vmap` on one device."""
+    with padding) gives the numbers of one `vmap` on one device, by `integrate_ensemble`
+    and by `run_chunked`."""
     flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
     environment = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     completed = subprocess.run(
@@ -156,3 +192,12 @@ def test_two_cpu_devices_give_the_unsharded_result():
         assert out[count]["difference"] <= 1e-13
     assert out["4"]["devices_holding"] == 2
     assert out["4"]["spec"] == ["batch"]
+    # `run_chunked` splits a batch's chunks over both devices: the unchunked numbers to
+    # roundoff, one program for both chunks (t0 and the check traced), and the manifest
+    # records the split, so that resuming on one device is refused.
+    chunked = out["chunked"]
+    assert chunked["shape"] == [4, 5, 3]
+    assert chunked["difference"] <= 1e-12
+    assert chunked["manifest_devices"] == 2
+    assert chunked["programs"] == 1
+    assert "devices: 2 there, None here" in chunked["refused"]
