@@ -198,9 +198,10 @@ def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[
         return reduced.frame(q, args).transpose_times(momentum)
 
     def frame_derivative(q):
-        frame, contracted_products = reduced.linearised_frame(q, args)
+        _, contracted_products = reduced.linearised_frame(q, args)
         times, transpose_times = contracted_products(momentum)
-        return times(q), transpose_times(frame.transpose_times(momentum))
+        # J^T applied to the gradient's rho part, as `at` applies it.
+        return times(q), transpose_times(gradient[n:])
 
     def correction(end, branch="rarely"):
         energy1, segment = reduced.energy_segment(zeta, data.momentum, end, args)
