@@ -4,9 +4,12 @@ its two forms, compiled runs to a final time, fits, thresholds and figure output
 import dataclasses
 import functools
 import math
+import os
 import pathlib
 import statistics
 import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import as_completed, ThreadPoolExecutor
 from typing import Any
 
 import diffrax
@@ -16,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from tqdm.auto import tqdm
 
 import nhjax as nh
 
@@ -168,6 +172,44 @@ def run_adaptive(system, y0, t1, tolerance, solver=diffrax.Dopri8()):
     return final, solution.result == diffrax.RESULTS.successful, solution.stats["num_accepted_steps"]
 
 
+def usable_cores() -> int:
+    """How many cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def concurrently(tasks: Sequence[Callable[[], Any]], description: str, progress: bool) -> list:
+    """The results of `tasks`, independent calls without arguments, in their order, run
+    in one thread per usable core.
+
+    A figure's runs compile a program each, and XLA compiles (and runs) without holding
+    Python's lock: in threads, the programs of independent runs compile on every core
+    instead of one after the other. Only the wall time changes: each run is the same
+    program on the same inputs, so its numbers are the same. Runs that are timed are
+    timed afterwards, one at a time (`median_time`), not here. The first task to fail
+    raises its error, and tasks not yet started are dropped."""
+    bar = tqdm(total=len(tasks), desc=description, disable=not progress)
+    workers = min(len(tasks), usable_cores())
+    try:
+        if workers <= 1:
+            results = []
+            for task in tasks:
+                results.append(task())
+                bar.update()
+            return results
+        with ThreadPoolExecutor(workers) as pool:
+            futures = [pool.submit(task) for task in tasks]
+            try:
+                for future in as_completed(futures):
+                    future.result()
+                    bar.update()
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
+        return [future.result() for future in futures]
+    finally:
+        bar.close()
+
+
 def check_run(name: str, h: float, t1: float, succeeded, steps) -> None:
     """Raise unless a `run_to` run succeeded in t1 / h steps."""
     if not bool(succeeded):
@@ -196,13 +238,44 @@ def fitted_order(step_sizes, errors) -> float:
     return float(np.polyfit(np.log(step_sizes), np.log(errors), 1)[0])
 
 
+def _late(times: np.ndarray) -> np.ndarray:
+    """The last 90% of `times`: early on a bounded part dominates, later the linear growth."""
+    return times >= times[0] + 0.1 * (times[-1] - times[0])
+
+
 def late_slope(times, values) -> tuple[float, float]:
     """(slope, intercept) of a straight line fitted to `values` over the last 90% of
-    `times`: early on a bounded part dominates, later the linear growth."""
+    `times`."""
     times, values = np.asarray(times), np.asarray(values)
-    late = times >= times[0] + 0.1 * (times[-1] - times[0])
+    late = _late(times)
     slope, intercept = np.polyfit(times[late], values[late], 1)
     return float(slope), float(intercept)
+
+
+def variance_slope_interval(times, deltas, resamples: int = 2000, level: float = 0.95) -> tuple[float, float]:
+    r"""A bootstrap interval of `late_slope` of the sample variance over an ensemble:
+    `deltas` holds one trajectory per row, `times` its columns. The rows are resampled
+    with replacement `resamples` times (with the fixed key `SEED`), the slope of each
+    resample's variance is fitted, and the central `level` of those slopes is returned
+    (Efron & Tibshirani, *An Introduction to the Bootstrap*, 1993, §13: the percentile
+    interval).
+
+    Why: the states of a chaotic ensemble decorrelate within a short time, so two builds
+    that round differently sample, in effect, different ensembles, and the slope moves
+    by its sampling error from one to the other. The interval is what the ensemble
+    determines about the slope; a criterion on the slope alone would test rounding."""
+    times, deltas = np.asarray(times), np.asarray(deltas)
+    count = deltas.shape[0]
+    # A resample as the counts of each row in it: the variances of every resample from
+    # two matrix products.
+    counts = np.random.default_rng(SEED).multinomial(count, np.full(count, 1 / count), size=resamples)
+    means = counts @ deltas / count
+    variances = (counts @ deltas**2 - count * means**2) / (count - 1)
+    late = _late(times)
+    centred = times[late] - times[late].mean()
+    slopes = variances[:, late] @ centred / (centred @ centred)
+    low, high = np.quantile(slopes, [(1 - level) / 2, (1 + level) / 2])
+    return float(low), float(high)
 
 
 def positive(values, floor: float = 1e-18) -> np.ndarray:

@@ -16,6 +16,7 @@ report names the cheapest run overall and the cheapest energy-exact run.
 import dataclasses
 
 import diffrax
+import jax
 import jax.numpy as jnp
 from tqdm.auto import tqdm
 
@@ -25,6 +26,7 @@ from ._common import (
     check,
     check_run,
     COMPOSITIONS,
+    concurrently,
     Context,
     DISCRETE_GRADIENT_METHODS,
     ENERGY_EXACT_METHODS,
@@ -94,11 +96,12 @@ FULL = Sizes(
 QUICK = dataclasses.replace(FULL, repeats=3)
 
 
-def _measure(function, repeats: int, quartic: Quartic, name: str, setting: float, reference, energy0):
-    """Run once (compiling), then time `repeats` runs: wall time, final relative energy
-    error and error at t = 10 of the final state (in `name`'s form); `None` if the run
-    failed (a root find not converged), which the diagram records rather than stops at."""
-    final, succeeded, steps = function()
+def _point(function, outcome, repeats: int, quartic: Quartic, name: str, setting: float, reference, energy0):
+    """From the outcome of a first run of `function` (final state, success, steps): wall
+    time of `repeats` more, final relative energy error and error at t = 10 of the final
+    state (in `name`'s form); `None` if the run failed (a root find not converged), which
+    the diagram records rather than stops at."""
+    final, succeeded, steps = outcome
     if not bool(succeeded):
         return None
     if name not in _SOLVERS:
@@ -113,28 +116,43 @@ def _measure(function, repeats: int, quartic: Quartic, name: str, setting: float
     )
 
 
+def _run_function(quartic: Quartic, sample, name: str, setting: float):
+    """The run of `name` at `setting` (a step size, or Dopri8's tolerance) to t = 10 from
+    the sample state, as a call without arguments: one compiled program per method."""
+    if name in _SOLVERS:
+        y0 = quartic.example.from_adapted(sample)
+        return lambda: run_adaptive(
+            quartic.example.canonical, y0, jnp.asarray(FINAL_TIME), jnp.asarray(setting), _SOLVERS[name]
+        )
+    y0 = quartic.start(name, sample)
+    return lambda: run_to(quartic.system(name), METHODS[name].solver, y0, jnp.asarray(setting), jnp.asarray(FINAL_TIME))
+
+
 def measure(context: Context, quartic: Quartic, sample) -> dict:
+    """Each method's runs first, methods side by side (`concurrently`: their programs
+    compile at once), then every run timed, one at a time."""
     sizes = context.sizes
     reference = quartic.reference(context, FINAL_TIME)
     energy0 = float(quartic.energy(quartic.example.from_adapted(sample)))
-    runs = [(name, h) for name in sizes.methods for h in sizes.step_sizes]
-    runs += [(name, h) for name in sizes.compositions + sizes.collocations for h in sizes.composition_step_sizes]
-    runs += [(name, tolerance) for name in _SOLVERS for tolerance in sizes.tolerances]
+    settings = {name: sizes.step_sizes for name in sizes.methods}
+    settings |= {name: sizes.composition_step_sizes for name in sizes.compositions + sizes.collocations}
+    settings |= {name: sizes.tolerances for name in _SOLVERS}
+    functions = {
+        name: [_run_function(quartic, sample, name, setting) for setting in values] for name, values in settings.items()
+    }
+    outcomes = concurrently(
+        [lambda runs=runs: [jax.block_until_ready(function()) for function in runs] for runs in functions.values()],
+        "Figure 4: first runs (compiling)",
+        context.progress,
+    )
+    runs = [
+        (name, setting, function, outcome)
+        for (name, values), method_outcomes in zip(settings.items(), outcomes)
+        for setting, function, outcome in zip(values, functions[name], method_outcomes)
+    ]
     results = {}
-    for name, setting in tqdm(runs, desc="Figure 4: timed runs to t = 10", disable=not context.progress):
-        if name in _SOLVERS:
-            y0 = quartic.example.from_adapted(sample)
-
-            def function(y0=y0, tolerance=setting, solver=_SOLVERS[name]):
-                return run_adaptive(
-                    quartic.example.canonical, y0, jnp.asarray(FINAL_TIME), jnp.asarray(tolerance), solver
-                )
-        else:
-            y0 = quartic.start(name, sample)
-
-            def function(name=name, y0=y0, h=setting):
-                return run_to(quartic.system(name), METHODS[name].solver, y0, jnp.asarray(h), jnp.asarray(FINAL_TIME))
-        point = _measure(function, sizes.repeats, quartic, name, setting, reference, energy0)
+    for name, setting, function, outcome in tqdm(runs, desc="Figure 4: timed runs to t = 10", disable=not context.progress):
+        point = _point(function, outcome, sizes.repeats, quartic, name, setting, reference, energy0)
         entry = results.setdefault(
             name, dict(settings=[], wall_time_s=[], energy_error=[], solution_error=[], steps=[], failed=[])
         )

@@ -25,6 +25,7 @@ larger), and the projected Dopri8 drifting even on the reversible form (growth a
 """
 
 import dataclasses
+import functools
 
 import jax.numpy as jnp
 import numpy as np
@@ -32,6 +33,7 @@ import numpy as np
 import nhjax as nh
 from ._common import (
     check,
+    concurrently,
     Context,
     ENERGY_EXACT_METHODS,
     METHODS,
@@ -115,8 +117,8 @@ def run(context: Context) -> dict:
         **{"gauge-shifted": (oscillator.gauge_shifted, oscillator.to_gauge_shifted(adapted0))},
         canonical=(oscillator.canonical, (q0, p0)),
     )
-    runs = {}
-    for label, name, form in RUNS:
+
+    def one_run(name, form):
         system, start = systems[form]
         solution = nh.integrate(
             system, METHODS[name].solver, start, STEP, sizes.steps, save_every=sizes.save_every
@@ -128,10 +130,15 @@ def run(context: Context) -> dict:
             y_energy = oscillator.y_energy(solution.ys)
         energy = np.asarray(solution.energy)
         y_energy = np.asarray(y_energy)
-        runs[label] = dict(
+        return dict(
             method=name, form=form, times=np.asarray(solution.ts),
             relative_energy=np.abs(energy / energy[0] - 1), y_energy_error=np.abs(y_energy - y_energy[0]),
         )
+
+    results = concurrently(
+        [functools.partial(one_run, name, form) for _, name, form in RUNS], "Figure 5: runs", context.progress
+    )
+    runs = {label: result for (label, _, _), result in zip(RUNS, results)}
     image = plot(context.out / "fig5.png", runs)
 
     bound = roundoff(sizes.steps)
