@@ -102,14 +102,18 @@ def final_state_errors(system, method, y0, t1, step_sizes, reference, args=None,
     return [_max_distance(observe(final), reference) for final in final_states(system, method, y0, t1, step_sizes, args)]
 
 
-def runs_at_step_sizes(system, method, y0, step_sizes, n_steps, args=None):
+def runs_at_step_sizes(system, method, y0, step_sizes, n_steps, args=None, compiler_options=None):
     """`n_steps` steps of `method` from `y0` at each of `step_sizes`, one vmapped run
-    (`throw=False`), every step saved."""
+    (`throw=False`), every step saved; compiled with XLA's `compiler_options` where
+    given (`FULL_OPTIMISATION` for long runs)."""
 
     def run(dt):
         return nh.integrate(system, method, y0, dt, n_steps, args=args, throw=False)
 
-    return jax.vmap(run)(jnp.array(step_sizes))
+    dts = jnp.array(step_sizes)
+    if compiler_options is None:
+        return jax.vmap(run)(dts)
+    return jax.jit(jax.vmap(run)).lower(dts).compile(compiler_options=compiler_options)(dts)
 
 
 def errors_at(runs, step_sizes, t1, reference, observe=None):
