@@ -156,10 +156,7 @@ def test_the_chord_matrix_comes_with_its_inverse_and_its_rounding_floor(order):
         (gearbox.canonical, gearbox.random_initial_state(jax.random.key(0)), order <= 8),
     ):
         h = jnp.asarray(0.7)
-        guess, data = method.setup(system, 0.0, h, y0, None, method.initial_carry(system, y0, None))
-        guess = guess + 0.01  # away from the no-motion guess of a first step
-        derivative, inverse = method.chord_matrix(guess, data)
-        jacobian = method.chord_jacobian(guess, data)
+        guess, derivative, inverse, jacobian, floors = _chord_matrices(method, system, h, y0)
         size = guess.shape[0] // method.stages
         np.testing.assert_array_equal(
             jacobian[:size, :size], jnp.eye(size) - h * method.tableau().a[0, 0] * derivative
@@ -172,9 +169,21 @@ def test_the_chord_matrix_comes_with_its_inverse_and_its_rounding_floor(order):
             assert max(block.nbytes for block in inverse) <= SEQUENTIAL_BYTES
         else:
             assert not isinstance(inverse, tuple)
-        np.testing.assert_allclose(
-            method.chord_floor(derivative, data), rounding_floor(jacobian, *method.resolution(data)), rtol=1e-14
-        )
+        np.testing.assert_allclose(*floors, rtol=1e-14)
+
+
+@eqx.filter_jit
+def _chord_matrices(method, system, h, y0):
+    """At a step's guess, moved away from the no-motion guess of a first step: the
+    guess, `chord_matrix`'s F and inverse, `chord_jacobian`, and the rounding floor read
+    both ways (`chord_floor` from F, `rounding_floor` from the assembled matrix). One
+    program: evaluated eagerly, these compile their operations one by one."""
+    guess, data = method.setup(system, 0.0, h, y0, None, method.initial_carry(system, y0, None))
+    guess = guess + 0.01
+    derivative, inverse = method.chord_matrix(guess, data)
+    jacobian = method.chord_jacobian(guess, data)
+    floors = method.chord_floor(derivative, data), rounding_floor(jacobian, *method.resolution(data))
+    return guess, derivative, inverse, jacobian, floors
 
 
 @eqx.filter_jit
