@@ -4,9 +4,9 @@ claims in its numbers.
 One reproduction of all five figures runs once for the module (two methods on the
 quartic, one of each kind; Figure 1's ensemble at the quick size, 200 states to
 t = 500; 4000 gearbox steps in two chunks), in a child process whose XLA compiles as the
-`nhjax` command's does (`_nhjax_command`), not at the suite's lowest optimisation level:
-Figure 1's ensemble runs for far longer than it compiles (about 60 s at the suite's level
-against 25 s). Fewer states make the variance slopes of
+`nhjax` command's does (`_nhjax_command`, on one device), not at the suite's lowest
+optimisation level: Figure 1's ensemble runs for far longer than it compiles, and runs
+about three times slower at that level. Fewer states make the variance slopes of
 Figure 1(d) a lottery: with 50, rounding-level changes in the chaotic ensemble moved
 SI-DLA's slope from 0.27 to 0.1 of McLachlan & Perlmutter's line; with 200 it was
 0.87."""

@@ -5,9 +5,9 @@ does not), and time symmetry (a step with h, then one with -h, returns to the st
 
 Each (method, start) is one compiled run: 10^4 steps at each of the step sizes 0.2,
 0.1, 0.05 together (`jax.vmap` over dt), every step saved; the order is read at t = 5
-and the invariants over the whole run. These runs are long enough to be compiled at
-XLA's full optimisation (`helpers.FULL_OPTIMISATION`): the file took 187 s at the
-suite's level and 170 s so."""
+and the invariants over the whole run. These runs are long enough that compiling them at
+XLA's full optimisation (`helpers.FULL_OPTIMISATION`) costs less than it saves in
+running them."""
 
 import functools
 
