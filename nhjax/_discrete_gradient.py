@@ -91,6 +91,7 @@ def avf(
     return weights @ grads
 
 
+@eqx.filter_custom_jvp
 def _third_directional_derivative(f, x, direction, args):
     r"""$D^3 f(x)[u, u, u]$ for $u$ = `direction`: the central third difference of the
     values $\phi(s) = f(x + s\,Sv)$ along $Sv$, $v = S^{-1}u/|S^{-1}u|$,
@@ -114,7 +115,37 @@ def _third_directional_derivative(f, x, direction, args):
     eighth of the sleigh's and the disk's reverse-mode programs (`benchmarks/gradients.py`)
     though the branch runs only for nearly equal points. Values need no derivative of
     $f$ at all, and their derivatives first ones.
+
+    Its derivative comes from one reverse pass through the four values
+    (`_third_directional_derivative_jvp`), whatever the number of tangents.
     """
+    return _third_difference(f, x, direction, args)
+
+
+@_third_directional_derivative.def_jvp
+def _third_directional_derivative_jvp(primals, tangents):
+    r"""The derivative of `_third_directional_derivative` along `tangents`: its gradient
+    in what has a tangent (the point, the direction, the arguments and the arrays of
+    $f$), by one reverse pass, contracted with the tangents.
+
+    The Jacobians that derivatives of a step form push a batch of tangents through the
+    residual (`nhjax._solver.base._linearised`); forward mode through the four values
+    would hold arrays of the four points for every tangent, which takes XLA:CPU's
+    step programs off sequential execution (`nhjax._linalg.SEQUENTIAL_BYTES`) even
+    though this branch runs only for nearly equal points. The gradient depends on the
+    primals alone, so a batch of tangents forms it once."""
+    is_none = lambda t: t is None  # noqa: E731
+    differentiated = jax.tree.map(lambda t: t is not None, tangents, is_leaf=is_none)
+    varying, fixed = eqx.partition(primals, differentiated)
+    value, pullback = jax.vjp(lambda v: _third_difference(*eqx.combine(v, fixed)), varying)
+    (gradient,) = pullback(jnp.ones_like(value))
+    given = jax.tree.leaves(eqx.filter(tangents, differentiated, is_leaf=is_none))
+    along = [jnp.sum(g * t.astype(g.dtype)) for g, t in zip(jax.tree.leaves(gradient), given, strict=True)]
+    return value, sum(along, jnp.zeros_like(value))
+
+
+def _third_difference(f, x, direction, args):
+    """`_third_directional_derivative`'s value, differentiated by autodiff."""
     scale = jax.lax.stop_gradient(1.0 + jnp.abs(x))
     scaled = direction / scale
     length = safe_norm(scaled)
