@@ -57,7 +57,7 @@ def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, arg
     (`bounded`), also the last step's start and root."""
 
     carry, root = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y0, dt, args))
-    return tree_bytes((y0, carry, root)) * (2 if bounded else 1)
+    return tree_bytes((y0, method.replayed_carry(carry), root)) * (2 if bounded else 1)
 
 
 def _first_carry_and_unknowns(system, method, y0, dt, args):
@@ -111,7 +111,7 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
     skipped step's NaN root would give the discarded branch NaN derivatives, which
     reverse mode multiplies by the zero cotangent of the branch not taken (under
     `vmap`, where the steps of a batch end at different `n_steps`)."""
-    carry = method.initial_carry(system, unledgered(y_start), args)
+    carry = method.replayed_carry(method.initial_carry(system, unledgered(y_start), args))
     n_saves = roots.shape[0] // save_every
     save = observe(system)
 

@@ -454,3 +454,17 @@ def test_default_adjoint_checkpoints_every_step_within_its_budget():
     # GONZALEZ-R carries more than the state from step to step, and that counts too.
     fewer = CHECKPOINT_BUDGET_BYTES // (2 * per_step_floor)
     assert default_adjoint(GEARBOX, nh.GonzalezR(), y0, args, dt, fewer).checkpoints is None
+
+
+def test_a_replayed_gonzalez_r_step_stores_its_state_frame_coordinates_signs_and_root():
+    """Per step, a run's derivative keeps what its replay reads: the state (q, p), 2n
+    numbers; the carried zeta' = (q', rho'), 2n - k, and the frame's k signs; the root,
+    2n - k. The predictor's velocities, step sizes and displacement history, which only
+    guess the root, are not kept (they were 42 of the sleigh's 59 numbers)."""
+    from nhjax._replay import replay_storage_bytes
+
+    sleigh = nh.examples.chaplygin_sleigh()
+    y0 = sleigh.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), sleigh.args)
+    n, k = y0[0].shape[0], 1
+    kept = 2 * n + (2 * n - k) + k + (2 * n - k)
+    assert replay_storage_bytes(sleigh.canonical, nh.GonzalezR(), y0, sleigh.args, jnp.asarray(0.1)) == 8 * kept

@@ -642,10 +642,27 @@ class AbstractMethod(diffrax.AbstractSolver):
         returned: the same values as `advance` (from the same setup and completion,
         with `root` in place of the root finder's answer), and the derivatives the
         implicit function theorem gives the step (`_implicit_root`). For derivatives of
-        a whole run without the root finder in them (`nhjax._replay`)."""
+        a whole run without the root finder in them (`nhjax._replay`).
+
+        The carry is taken and returned as `replayed_carry` keeps it: what it drops
+        only guesses the root, which the replay does not seek, and reads as NaN."""
+        template = jax.eval_shape(lambda: self.initial_carry(system, unledgered(y0), args))
+        carry = jax.tree.map(
+            lambda kept, shape: jnp.full(shape.shape, jnp.nan, shape.dtype) if kept is None and shape is not None else kept,
+            carry,
+            template,
+            is_leaf=lambda leaf: leaf is None,
+        )
         _, data = self.setup(system, t, h, unledgered(y0), args, carry)
         y1, carry, _ = self._completed(y0, lax.stop_gradient(root), data, replayed=True)
-        return y1, carry
+        return y1, self.replayed_carry(carry)
+
+    def replayed_carry(self, carry: PyTree) -> PyTree:
+        """The part of a step's carry that a replayed step (`replay_step`) reads: all of
+        it, unless a method drops (as `None`) what only its guess of the root reads.
+        A run's derivative stores this per step (`nhjax._replay`), so what is dropped
+        is memory and time saved at every step."""
+        return carry
 
     def _completed(self, y0, root, data, replayed: bool = False):
         r"""The step from `y0` whose root is `root`, with the root's derivatives

@@ -248,6 +248,15 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         no_history = jnp.full((HISTORY,) + zeta.shape, jnp.nan, zeta.dtype)
         return _Carry(zeta, signs, unknown, unknown, no_step, no_step, no_history)
 
+    def replayed_carry(self, carry: _Carry) -> _Carry:
+        r"""$\zeta'$ and the signs: the velocities, step sizes and displacements feed only
+        the predictor (`setup`), which a replayed step does not use. Per step of a
+        run's derivative they were most of what it stores (the sleigh: 42 of 59
+        numbers, with the state and the root)."""
+        return carry._replace(
+            last_velocity=None, earlier_velocity=None, last_step=None, earlier_step=None, displacements=None
+        )
+
     def setup(self, system: NonholonomicSystem, t, h, y0, args, carry):
         # A step starts from the previous step's zeta' itself, not from
         # zeta = (q, X(q)^T p) recomputed from the (q, p) it returned: the map
