@@ -301,6 +301,11 @@ class EnergyPreservingCollocation(AbstractMethod):
         no_history = jnp.full((HISTORY, start.shape[0]), jnp.nan, dtype=start.dtype)
         return _Carry(start, signs, unknown, jnp.full((), jnp.nan, dtype=start.dtype), no_history)
 
+    def replayed_carry(self, carry: _Carry) -> _Carry:
+        """The end and the signs: the increments, step size and displacements feed only
+        the predictor (`setup`), which a replayed step does not use."""
+        return carry._replace(increments=None, step=None, displacements=None)
+
     def setup(self, system, t, h, y0, args, carry):
         signs, frame = self._signs_and_frame(system, y0, args)
         form = self._form(system, y0, args, signs)
