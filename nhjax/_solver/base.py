@@ -401,7 +401,8 @@ class AbstractMethod(diffrax.AbstractSolver):
       finder uses; by default the residual itself;
     - `complete(unknowns, data) -> (y1, carry)`: the new state, and what the next step
       receives as `carry` (the first step receives `initial_carry(system, y0, args)`,
-      by default `None`).
+      by default `None`; a run's derivative stores per step only `replayed_carry` of
+      it).
 
     Subclasses set `root_finder` (`None`: `default_root_finder` for the state's dtype)
     and `root_find_max_steps`, and say whether the method is symmetric
@@ -660,8 +661,10 @@ class AbstractMethod(diffrax.AbstractSolver):
     def replayed_carry(self, carry: PyTree) -> PyTree:
         """The part of a step's carry that a replayed step (`replay_step`) reads: all of
         it, unless a method drops (as `None`) what only its guess of the root reads.
-        A run's derivative stores this per step (`nhjax._replay`), so what is dropped
-        is memory and time saved at every step."""
+        A run's derivative stores this per step (`nhjax._replay`): what is dropped is
+        memory saved at every step, and longer runs fit the replay's budget
+        (`nhjax._adjoints.replays_derivatives`) instead of falling back to diffrax's
+        checkpointed loop."""
         return carry
 
     def _completed(self, y0, root, data, replayed: bool = False):
