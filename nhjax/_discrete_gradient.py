@@ -41,6 +41,7 @@ from jaxtyping import Array, Float
 
 from ._linalg import safe_norm
 from ._rare_branch import rarely
+from ._tangents import split_by_tangents
 
 
 ScalarFunction = Callable[[Float[Array, " N"], Any], Float[Array, ""]]
@@ -134,13 +135,13 @@ def _third_directional_derivative_jvp(primals, tangents):
     step programs off sequential execution (`nhjax._linalg.SEQUENTIAL_BYTES`) even
     though this branch runs only for nearly equal points. The gradient depends on the
     primals alone, so a batch of tangents forms it once."""
-    is_none = lambda t: t is None  # noqa: E731
-    differentiated = jax.tree.map(lambda t: t is not None, tangents, is_leaf=is_none)
-    varying, fixed = eqx.partition(primals, differentiated)
+    varying, fixed, given = split_by_tangents(primals, tangents)
     value, pullback = jax.vjp(lambda v: _third_difference(*eqx.combine(v, fixed)), varying)
     (gradient,) = pullback(jnp.ones_like(value))
-    given = jax.tree.leaves(eqx.filter(tangents, differentiated, is_leaf=is_none))
-    along = [jnp.sum(g * t.astype(g.dtype)) for g, t in zip(jax.tree.leaves(gradient), given, strict=True)]
+    along = [
+        jnp.sum(g * t.astype(g.dtype))
+        for g, t in zip(jax.tree.leaves(gradient), jax.tree.leaves(given), strict=True)
+    ]
     return value, sum(along, jnp.zeros_like(value))
 
 

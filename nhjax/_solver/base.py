@@ -25,6 +25,7 @@ from .._reduced import metric_is, metric_of
 from .._rare_branch import rarely
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from .._system import AbstractSystem
+from .._tangents import split_by_tangents
 from .chord import chord_inverse, ChordSolution, PresetChord
 
 
@@ -124,9 +125,7 @@ def _linearised(equations, root, data, data_tangent):
     With more entries (large systems, or a control signal in the data) the batch
     would grow by as many tangents as there are entries, and the one tangent along
     the data is taken instead."""
-    differentiable = jax.tree.map(lambda t: t is not None, data_tangent, is_leaf=lambda t: t is None)
-    varying, fixed = eqx.partition(data, differentiable)
-    tangent_in = eqx.filter(data_tangent, differentiable, is_leaf=lambda t: t is None)
+    varying, fixed, tangent_in = split_by_tangents(data, data_tangent)
     value, linear = jax.linearize(lambda u, v: equations(u, eqx.combine(v, fixed)), root, varying)
     n = root.shape[0]
     if sum(leaf.size for leaf in jax.tree.leaves(varying)) <= FORMED_DATA_DERIVATIVE_LIMIT:
