@@ -405,6 +405,12 @@ class NonholonomicSystem(AbstractSystem):
         require_floating_vector("p", p)
         if jnp.shape(q) != jnp.shape(p):
             raise ValueError(f"q and p must have the same shape, got {jnp.shape(q)} and {jnp.shape(p)}.")
+        if jnp.result_type(q) != jnp.result_type(p):
+            # Otherwise a method's loop fails deep inside, its carry's dtype changing.
+            raise ValueError(
+                f"q and p must have the same dtype, got {jnp.result_type(q)} and {jnp.result_type(p)}: "
+                "convert both to one (float64 keeps the energy to roundoff), e.g. with .astype."
+            )
         (n,) = jnp.shape(q)
         if isinstance(self.hamiltonian, LegendreHamiltonian):
             # Before the Hamiltonian's shape, which a Lagrangian of the wrong shape fails

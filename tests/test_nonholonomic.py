@@ -118,6 +118,8 @@ def test_bad_hamiltonians_and_states_are_named():
         nh.integrate(GEARBOX.canonical, nh.GonzalezR(), jnp.concatenate([q, p]), 0.1, 3)
     with pytest.raises(ValueError, match="same shape"):
         nh.integrate(GEARBOX.canonical, nh.GonzalezR(), (q, p[:2]), 0.1, 3)
+    with pytest.raises(ValueError, match="same dtype, got float32 and float64"):
+        nh.integrate(GEARBOX.canonical, nh.GonzalezR(), (q.astype(jnp.float32), p), 0.1, 3)
     with pytest.raises(ValueError, match="1 <= k < 3"):
         nh.integrate(nh.NonholonomicSystem(GEARBOX.canonical.hamiltonian, lambda q, args: jnp.eye(3)), nh.GonzalezR(), (q, p), 0.1, 3)
     with pytest.raises(ValueError, match="central_difference"):
