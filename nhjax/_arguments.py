@@ -24,20 +24,6 @@ def trace_floats(args: PyTree) -> PyTree:
     )
 
 
-def in_state_dtype(args: PyTree, dtype) -> PyTree:
-    """`args` (after `trace_floats`) with its real floating-point arrays in `dtype`, the
-    state's: a float64 parameter would otherwise promote a float32 run's states to
-    float64 within a step, which the loop's float32 buffers cannot take. Other leaves
-    are kept as they are."""
-
-    def cast(leaf):
-        if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating) and leaf.dtype != dtype:
-            return jnp.asarray(leaf, dtype=dtype)
-        return leaf
-
-    return jax.tree.map(cast, args)
-
-
 def check_step_counts(n_steps, save_every, max_steps=None) -> None:
     """`ValueError` unless `n_steps` and `save_every` are positive ints and `save_every`
     divides `n_steps` (so that the final state is saved).

@@ -34,14 +34,14 @@ import numpy as np
 from jaxtyping import Array, PyTree
 
 from ._adjoints import checked_adjoint, default_adjoint, replays_derivatives
-from ._arguments import args_result, check_args, check_step_counts, check_step_size, in_state_dtype, state_dtype, trace_floats
+from ._arguments import args_result, check_args, check_step_counts, check_step_size, state_dtype, trace_floats
 from ._fixed_steps import fixed_step_run
 from ._replay import replayed_run
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from ._ledger import observe, run_start
 from ._solution import method_outcome, nonfinite_saves, raise_failure, Solution, solution_from_saves
 from ._step_times import FixedStepTimes, step_time
-from ._system import AbstractSystem
+from ._system import AbstractSystem, in_state_dtype
 
 
 def integrate(

@@ -11,12 +11,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ._adjoints import adjoint_or_default
-from ._arguments import args_result, check_args, check_save_times, default_tolerance, in_state_dtype, state_dtype, trace_floats
+from ._arguments import args_result, check_args, check_save_times, default_tolerance, state_dtype, trace_floats
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from ._ledger import observe, run_start
 from ._solution import method_outcome, raise_failure, Solution, solution_from_saves
 from ._solver.projection import Projection
-from ._system import AbstractSystem, is_int
+from ._system import AbstractSystem, in_state_dtype, is_int
 
 
 def integrate_adaptive(

@@ -30,8 +30,10 @@ from ._system import (
     AbstractSystem,
     check_dissipation_and_force,
     dissipation_at_start,
+    in_state_dtype,
     require_floating_vector,
     require_scalar,
+    require_state_dtype,
     SkewGradientSystem,
 )
 
@@ -412,12 +414,19 @@ class NonholonomicSystem(AbstractSystem):
                 "convert both to one (float64 keeps the energy to roundoff), e.g. with .astype."
             )
         (n,) = jnp.shape(q)
+        dtype = jnp.result_type(q)
+        converted = in_state_dtype(args, dtype)
         if isinstance(self.hamiltonian, LegendreHamiltonian):
             # Before the Hamiltonian's shape, which a Lagrangian of the wrong shape fails
             # deep inside the Legendre transform.
-            require_scalar("lagrangian(q, qdot, args)", jax.eval_shape(self.hamiltonian.lagrangian, q, p, args))
-        require_scalar("hamiltonian(q, p, args)", jax.eval_shape(self.hamiltonian, q, p, args))
-        a = jax.eval_shape(self.constraints, q, args)
+            lagrangian = jax.eval_shape(self.hamiltonian.lagrangian, q, p, converted)
+            require_scalar("lagrangian(q, qdot, args)", lagrangian)
+            require_state_dtype("lagrangian(q, qdot, args)", lagrangian, dtype)
+        energy = jax.eval_shape(self.hamiltonian, q, p, converted)
+        require_scalar("hamiltonian(q, p, args)", energy)
+        require_state_dtype("hamiltonian(q, p, args)", energy, dtype)
+        a = jax.eval_shape(self.constraints, q, converted)
+        require_state_dtype("constraints(q, args)", a, dtype)
         if len(a.shape) != 2 or a.shape[1] != n or not 1 <= a.shape[0] < n:
             raise ValueError(
                 f"constraints(q, args) must return a (k, {n}) matrix with 1 <= k < {n} for "

@@ -15,7 +15,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, PyTree
 
 from ._ledger import Ledgered
 from ._results import first_failure, RESULTS
@@ -106,12 +106,27 @@ def require_floating_vector(name: str, x) -> None:
         raise ValueError(f"{name} must be floating point, got dtype {jnp.result_type(x)}.")
 
 
+def in_state_dtype(args: PyTree, dtype) -> PyTree:
+    """`args` (after `nhjax._arguments.trace_floats`) with its real floating-point arrays in `dtype`, the
+    state's: a float64 parameter would otherwise promote a float32 run's states to
+    float64 within a step, which the loop's float32 buffers cannot take. Other leaves
+    are kept as they are."""
+
+    def cast(leaf):
+        if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating) and leaf.dtype != dtype:
+            return jnp.asarray(leaf, dtype=dtype)
+        return leaf
+
+    return jax.tree.map(cast, args)
+
+
 def check_dissipation_and_force(system, state, args, n: int, arguments: str) -> None:
     """Shapes and dtypes of a system's `dissipation` (an (n, n) matrix) and `force` (an
     (n,) vector), from `dissipation(*state, args)` and `force(t, *state, args)`, the
     time a scalar of the state's dtype; a `ValueError` naming the problem."""
     dtype = jnp.result_type(*jax.tree.leaves(state))
     time = jax.ShapeDtypeStruct((), dtype)
+    args = in_state_dtype(args, dtype)
     for name, function, leading, shape in (
         ("dissipation", system.dissipation, (), (n, n)),
         ("force", system.force, (time,), (n,)),
@@ -141,6 +156,21 @@ def dissipation_at_start(dissipation, state, args) -> tuple[Array, RESULTS]:
         symmetric & (smallest >= -tolerance), RESULTS.successful, RESULTS.dissipation_not_positive_semidefinite
     )
     return jnp.all(jnp.isfinite(matrix)), semidefinite
+
+
+def require_state_dtype(name: str, struct, dtype) -> None:
+    """A `ValueError` where `struct` (the `jax.eval_shape` of a system's function at a
+    state of `dtype`, its `args` converted to `dtype` as a run converts them,
+    `in_state_dtype`) is of a wider floating dtype than the state's: a method's loop
+    would otherwise fail deep inside, its carry changing dtype, or differentiate in
+    one dtype and step in another."""
+    returned = getattr(struct, "dtype", None)
+    if returned is not None and jnp.promote_types(returned, dtype) != dtype:
+        raise ValueError(
+            f"{name} returned {returned} for a state in {dtype}: something inside it promotes the result "
+            f"(a NumPy float64 scalar or array, say; args are converted to the state's dtype). Compute it "
+            f"in the state's dtype, or give the state in {returned}."
+        )
 
 
 def require_scalar(name: str, struct) -> None:
@@ -227,13 +257,18 @@ abla H(x)$ or a method's discrete `gradient`; `None` for a
     def check_shapes(self, y0, args):
         require_floating_vector("The state of a SkewGradientSystem", y0)
         (n,) = jnp.shape(y0)
-        require_scalar("hamiltonian(x, args)", jax.eval_shape(self.hamiltonian, y0, args))
-        structure = jax.eval_shape(self.structure, y0, args)
+        dtype = jnp.result_type(y0)
+        converted = in_state_dtype(args, dtype)
+        energy = jax.eval_shape(self.hamiltonian, y0, converted)
+        require_scalar("hamiltonian(x, args)", energy)
+        require_state_dtype("hamiltonian(x, args)", energy, dtype)
+        structure = jax.eval_shape(self.structure, y0, converted)
         if structure.shape != (n, n):
             raise ValueError(
                 f"structure(x, args) must return an ({n}, {n}) matrix for a state of "
                 f"shape ({n},), got shape {structure.shape}."
             )
+        require_state_dtype("structure(x, args)", structure, dtype)
         check_dissipation_and_force(self, (y0,), args, n, "x")
 
     def initial_state_result(self, y0, args):

@@ -99,6 +99,28 @@ def test_reduced_gradient_and_structure(derivative):
     np.testing.assert_allclose(p, y[1], atol=1e-15)
 
 
+def test_functions_that_promote_a_float32_state_are_named_and_float64_args_are_not():
+    """A NumPy float64 constant inside H or A promotes a float32 run's arrays, which a
+    method's loop cannot carry: named before the run. A float64 parameter in args is
+    converted to the state's dtype, as the run converts it, so a dissipation reading one
+    is not taken for such a function."""
+    q = jnp.array([0.1, 0.2, 0.3], dtype=jnp.float32)
+    p = GEARBOX.canonical.project_momentum(q, jnp.array([0.4, 0.5, 0.6], dtype=jnp.float32))
+    promoting_h = nh.NonholonomicSystem(lambda q, p, args: 0.5 * p @ p + np.float64(0.1) * jnp.sum(q), GEARBOX.canonical.constraints)
+    promoting_a = nh.NonholonomicSystem(GEARBOX.canonical.hamiltonian, lambda q, args: GEARBOX.canonical.constraints(q, args).astype(jnp.float64))
+    for system, name in [(promoting_h, r"hamiltonian\(q, p, args\)"), (promoting_a, r"constraints\(q, args\)")]:
+        with pytest.raises(ValueError, match=name + " returned float64 for a state in float32"):
+            nh.integrate(system, nh.SIDLA(), (q, p), 0.1, 3)
+    skew = nh.SkewGradientSystem(lambda x, args: 0.5 * x @ x, lambda x, args: jnp.array([[0.0, 1.0], [-1.0, 0.0]], dtype=jnp.float64))
+    with pytest.raises(ValueError, match=r"structure\(x, args\) returned float64 for a state in float32"):
+        nh.integrate(skew, nh.DiscreteGradient(), jnp.ones(2, jnp.float32), 0.1, 3)
+    damped = nh.NonholonomicSystem(
+        GEARBOX.canonical.hamiltonian, GEARBOX.canonical.constraints, dissipation=lambda q, p, args: args["c"] * jnp.eye(3, dtype=q.dtype)
+    )
+    solution = nh.integrate(damped, nh.GonzalezR(), (q, p), 0.1, 3, args={"c": jnp.asarray(0.1, jnp.float64)})
+    assert solution.result == nh.RESULTS.successful and solution.ys[1].dtype == jnp.float32
+
+
 def test_bad_hamiltonians_and_states_are_named():
     constraints = GEARBOX.constraints
     q = jnp.array([0.1, 0.2, 0.3])
