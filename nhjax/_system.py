@@ -107,10 +107,10 @@ def require_floating_vector(name: str, x) -> None:
 
 
 def in_state_dtype(args: PyTree, dtype) -> PyTree:
-    """`args` (after `nhjax._arguments.trace_floats`) with its real floating-point arrays in `dtype`, the
-    state's: a float64 parameter would otherwise promote a float32 run's states to
-    float64 within a step, which the loop's float32 buffers cannot take. Other leaves
-    are kept as they are."""
+    """`args` (after `nhjax._arguments.trace_floats`) with its real floating-point
+    arrays in `dtype`, the state's: a float64 parameter would otherwise promote a
+    float32 run's states to float64 within a step, which the loop's float32 buffers
+    cannot take. Other leaves are kept as they are."""
 
     def cast(leaf):
         if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating) and leaf.dtype != dtype:
