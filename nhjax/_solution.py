@@ -11,7 +11,6 @@ from jaxtyping import Array, Bool, Float, PyTree
 
 from ._results import first_failure, nan_derivatives_where, result_codes, RESULTS, SUCCESS
 from ._solver.base import AbstractMethodState
-from ._system import AbstractSystem
 
 
 class Solution(eqx.Module):

@@ -26,7 +26,6 @@ import math
 import diffrax
 import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
 import nhjax as nh
