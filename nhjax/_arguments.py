@@ -1,5 +1,6 @@
-"""The checks and conversions of what a run is called with: step counts, step sizes,
-save times, tolerances and `args`, and the dtype the run computes in."""
+"""The checks and conversions of what a run is called with: the method for the system,
+step counts, step sizes, save times, tolerances and `args`, and the dtype the run
+computes in."""
 
 import math
 from typing import Any
@@ -10,7 +11,7 @@ import numpy as np
 from jaxtyping import PyTree
 
 from ._results import RESULTS
-from ._system import is_int
+from ._system import is_int, SkewGradientSystem
 
 
 def trace_floats(args: PyTree) -> PyTree:
@@ -22,6 +23,19 @@ def trace_floats(args: PyTree) -> PyTree:
     return jax.tree.map(
         lambda leaf: jnp.asarray(leaf) if isinstance(leaf, float) else leaf, args
     )
+
+
+def check_method(system, method) -> None:
+    """`ValueError` unless `system` is of the kind `method` integrates, its
+    `term_structure` (a class; diffrax's solvers take any term): a method for
+    skew-gradient systems given a `NonholonomicSystem` failed deep inside its first
+    step, on the tuple (q, p) it cannot read."""
+    kind = getattr(method, "term_structure", None)
+    if isinstance(kind, type) and not isinstance(system, kind):
+        hint = ""
+        if kind is SkewGradientSystem and hasattr(system, "reduced"):
+            hint = " Its reduced form, system.reduced(signs), is one."
+        raise ValueError(f"{type(method).__name__} integrates a {kind.__name__}, got a {type(system).__name__}.{hint}")
 
 
 def check_step_counts(n_steps, save_every, max_steps=None) -> None:

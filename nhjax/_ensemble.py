@@ -12,7 +12,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
-from ._arguments import check_args, check_step_counts, check_step_size, state_dtype, trace_floats
+from ._arguments import check_args, check_method, check_step_counts, check_step_size, state_dtype, trace_floats
 from ._integrate import integrate
 from ._solution import Solution
 from ._results import result_codes, RESULTS, SUCCESS
@@ -89,6 +89,7 @@ def integrate_ensemble(
         system.check_shapes(jax.tree.map(lambda leaf: leaf[0], y0s), args)
     except ValueError as error:
         raise ValueError(f"Each state along y0s's leading batch axis: {error}") from error
+    check_method(system, method)
     devices = checked_devices(jax.devices() if devices is None else devices)
     mesh = Mesh(np.asarray(devices), (_AXIS,))
     padded_size = -(-size // len(devices)) * len(devices)

@@ -34,7 +34,7 @@ import numpy as np
 from jaxtyping import Array, PyTree
 
 from ._adjoints import checked_adjoint, default_adjoint, replays_derivatives
-from ._arguments import args_result, check_args, check_step_counts, check_step_size, state_dtype, trace_floats
+from ._arguments import args_result, check_args, check_method, check_step_counts, check_step_size, state_dtype, trace_floats
 from ._fixed_steps import fixed_step_run
 from ._replay import replayed_run
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
@@ -126,9 +126,9 @@ def integrate(
         past the end repeat it. The run takes $n$ steps; its derivatives by replay
         (above) walk all `max_steps`, holding the state after the end.
 
-    **Errors.** Wrong shapes, a non-integer `n_steps`, and a concrete `dt` that is not
-    positive and finite, `t0` or `args` leaf that is not finite raise a `ValueError` at
-    once. Everything else is a `nhjax.RESULTS` code (the README lists them): with
+    **Errors.** Wrong shapes, a method for another kind of system, a non-integer
+    `n_steps`, and a concrete `dt` that is not positive and finite, `t0` or `args` leaf
+    that is not finite raise a `ValueError` at once. Everything else is a `nhjax.RESULTS` code (the README lists them): with
     `throw=False` it is set per trajectory; with `throw=True` a concrete call raises a
     `RuntimeError` with its message and the step and time of the failure, and a traced
     one (under `jit`, `vmap`, `grad`) a runtime error with its message.
@@ -137,6 +137,7 @@ def integrate(
     check_step_size(dt, t0)
     check_args(args)
     system.check_shapes(y0, args)
+    check_method(system, method)
     dtype = state_dtype(y0)
     dt, t0 = jnp.asarray(dt, dtype=dtype), jnp.asarray(t0, dtype=dtype)
     solution = _integrate(

@@ -34,6 +34,24 @@ def check_derivative(derivative) -> None:
         )
 
 
+def check_difference_step(derivative: Derivative, difference_step) -> None:
+    """Raise a `ValueError` unless `difference_step` suits `derivative`: `None` or a
+    positive finite scalar with `"central_difference"` (checked where it is concrete),
+    `None` with `"autodiff"`, which would ignore it."""
+    if difference_step is None:
+        return
+    if derivative != "central_difference":
+        raise ValueError(
+            f'difference_step is the increment of derivative="central_difference"; with '
+            f"derivative={derivative!r} it would be ignored, got difference_step={difference_step!r}."
+        )
+    if isinstance(difference_step, jax.core.Tracer):
+        return
+    step = np.asarray(difference_step)
+    if step.shape != () or not np.isfinite(step) or not step > 0:
+        raise ValueError(f"difference_step must be a positive finite number, got {difference_step!r}.")
+
+
 def momentum_in_frame(frame: HouseholderFrame, rho, metric=None):
     r"""Eq. (ptoptilde) in a given frame $X$ and a constant metric $M$:
     $p = MX(X^TMX)^{-1}\rho$, and $y = (X^TMX)^{-1}\rho$, the velocity in the frame
@@ -194,6 +212,7 @@ class ReducedSystem(eqx.Module):
             raise ValueError(f'metric must be "position", "identity" or an array, got {self.metric!r}.')
         if self.derivative == "central_difference" and self.difference_step is None:
             raise ValueError('derivative="central_difference" needs a difference_step.')
+        check_difference_step(self.derivative, self.difference_step)
 
     def momentum_in_frame(self, q, frame: HouseholderFrame, rho, args):
         """`momentum_in_frame` with this system's metric at `q`; for a metric that

@@ -26,7 +26,7 @@ from ._chunk_files import (
     with_identity,
     write_atomically,
 )
-from ._arguments import check_args, check_step_counts, check_step_size, trace_floats
+from ._arguments import check_args, check_method, check_step_counts, check_step_size, trace_floats
 from ._ensemble import checked_devices, integrate_ensemble
 from ._integrate import integrate
 from ._solution import Solution
@@ -143,6 +143,7 @@ def run_chunked(
     n_steps, save_every = int(n_steps), int(save_every)
     y0 = jax.tree.map(jnp.asarray, y0)
     batch = _batch_size(system, y0, args)
+    check_method(system, method)
     if chunk_steps is None:
         chunk_steps = _default_chunk_steps(n_steps, save_every, batch)
     elif (

@@ -7,6 +7,7 @@ travels in the solver state as an `nhjax.RESULTS` code naming its cause
 (`step_failure`), while the step reports `diffrax.RESULTS.breakdown`;
 `nhjax.integrate` reports the nhjax code."""
 
+import numbers
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -239,6 +240,13 @@ def check_optional_bool(owner: str, name: str, value) -> None:
         raise ValueError(f"{owner}: {name} must be None, True or False, got {value!r}.")
 
 
+def check_positive_int(owner: str, name: str, value) -> None:
+    """A `ValueError` naming `owner`'s option `name` unless `value` is a positive int (a
+    bool is not one)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise ValueError(f"{owner}: {name} must be a positive int, got {value!r}.")
+
+
 # How many step displacements the predictors of GONZALEZ-R and of EP-collocation keep
 # (`displacements_for_step`): on the gearbox at h = 0.05, GONZALEZ-R's guess from the
 # last six is 2e3 times closer than the one from the last two, on Euler's disk at
@@ -422,6 +430,11 @@ class AbstractMethod(diffrax.AbstractSolver):
     # state's dtype, `default_root_finder`) has none to rewrite.
     root_finder: eqx.AbstractVar[optx.AbstractRootFinder | None]
     root_find_max_steps: eqx.AbstractVar[int]
+
+    def __check_init__(self):
+        # Zero iterations leave every step unsolved, which a run reported as a
+        # non-finite state.
+        check_positive_int(type(self).__name__, "root_find_max_steps", self.root_find_max_steps)
 
     def initial_carry(self, system: AbstractSystem, y0: PyTree[Array], args: PyTree) -> PyTree:
         del system, y0, args

@@ -92,7 +92,8 @@ class DiscreteGradient(AbstractMethod):
     - `structure_approximation`: `(structure, x, x1, args) -> (N, N)` skew matrix
         approximating $\Pi$; default `nhjax.midpoint_structure`.
     - `root_finder`: an optimistix root finder, or `None` for the default.
-    - `root_find_max_steps`: iterations allowed per step before the step fails.
+    - `root_find_max_steps`: iterations allowed per step before the step fails, a
+        positive int.
     """
 
     term_structure: ClassVar = SkewGradientSystem

@@ -45,7 +45,7 @@ from jaxtyping import Array
 from .._discrete_gradient import Branch, gonzalez_correction
 from .._linalg import jacobian_by_differences, SEQUENTIAL_BYTES
 from .._nonholonomic import NonholonomicSystem
-from .._reduced import check_derivative, Derivative, metric_is, metric_of, ReducedSystem
+from .._reduced import check_derivative, check_difference_step, Derivative, metric_is, metric_of, ReducedSystem
 from .chord import REMAINDER
 from .base import (
     AbstractSymmetricSecondOrderMethod,
@@ -136,7 +136,8 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         of $X$ with increment `difference_step`, default $|h|$; the midpoint gradient
         is then accurate to $O(h^2)$, so the method stays second order and keeps
         energy and constraints, and the correction term's derivatives are its own).
-    - `difference_step`: the finite-difference increment, `None` for $|h|$.
+    - `difference_step`: the finite-difference increment, positive, `None` for $|h|$;
+        only with `"central_difference"`.
     - `root_finder`, `root_find_max_steps`: as for `nhjax.DiscreteGradient`.
     - `reuse_chord_matrix`: start each step from the last step's chord matrix while
         it serves (`nhjax.AbstractMethod.reuses_chord_matrix`): with the frame held
@@ -226,6 +227,7 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
 
     def __check_init__(self):
         check_derivative(self.derivative)
+        check_difference_step(self.derivative, self.difference_step)
         check_optional_bool("GonzalezR", "reuse_chord_matrix", self.reuse_chord_matrix)
         check_optional_bool("GonzalezR", "exact_chord_matrix", self.exact_chord_matrix)
 

@@ -23,6 +23,7 @@ from .base import (
     AbstractMethod,
     AbstractCountingState,
     all_finite,
+    check_positive_int,
     default_root_finder,
     no_gradient,
     ROUNDING_FLOOR,
@@ -172,8 +173,7 @@ class Projection(diffrax.AbstractWrappedSolver):
                 f"{type(solver).__name__} is an nhjax method, which keeps the constraint "
                 "(and the discrete-gradient methods the energy) by construction."
             )
-        if not (isinstance(root_find_max_steps, int) and root_find_max_steps >= 1):
-            raise ValueError(f"root_find_max_steps must be a positive int, got {root_find_max_steps!r}.")
+        check_positive_int("Projection", "root_find_max_steps", root_find_max_steps)
         if isinstance(solver, diffrax.AbstractRungeKutta) and solver.scan_kind is None:
             # A Runge-Kutta solver's default stage loop has a custom_vjp, through which
             # forward mode cannot go. diffrax.ForwardMode switches the solvers it is given

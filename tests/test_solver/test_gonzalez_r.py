@@ -254,6 +254,23 @@ def test_finite_difference_option_agrees_at_order_two():
     assert float(jnp.max(jnp.abs(long.constraint))) <= 1e-13
 
 
+def test_an_increment_that_cannot_work_is_named():
+    """A zero, negative or non-finite increment (zero gave NaN steps), and an increment
+    with `derivative="autodiff"`, which would ignore it, are refused when the method
+    or the reduced system is made; a traced increment is taken as it is."""
+    example, y0 = STARTS["gearbox, M = I"]
+    signs = example.canonical.frame_signs(y0[0], example.args)
+    for step in (0.0, -1e-3, float("nan"), jnp.inf, jnp.array([1e-3, 1e-3])):
+        with pytest.raises(ValueError, match="difference_step must be a positive finite number"):
+            nh.GonzalezR(derivative="central_difference", difference_step=step)
+        with pytest.raises(ValueError, match="difference_step must be a positive finite number"):
+            example.canonical.reduced(signs, "central_difference", step)
+    with pytest.raises(ValueError, match='difference_step is the increment of derivative="central_difference"'):
+        nh.GonzalezR(difference_step=1e-3)
+    traced = jax.jit(lambda step: nh.GonzalezR(derivative="central_difference", difference_step=step).difference_step)
+    assert float(traced(1e-3)) == 1e-3
+
+
 def test_gearbox_partial_energies_drift_at_order_two_while_the_total_is_exact():
     """H3 (the pendulum) and H - H3 are each conserved by the exact flow (A has no q3
     column and V separates, paper §4.4); the discrete gradient of the total mixes them,

@@ -95,3 +95,32 @@ def test_time_symmetric(method, start):
     assert all(result == diffrax.RESULTS.successful for result in results)
     np.testing.assert_allclose(back[0], y0[0], rtol=0, atol=1e-14)
     np.testing.assert_allclose(back[1], y0[1], rtol=0, atol=1e-14)
+
+
+QUARTIC = nh.examples.chaotic_quartic()
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_zero_iterations_and_a_system_of_another_kind_are_named(method):
+    """A method refuses a root-finder budget that is not a positive int when it is
+    made (with none, a run reported every unsolved step as a non-finite state), and a
+    run refuses a system of another kind than the method integrates (its
+    `term_structure`) before any step: a method for skew-gradient systems given one in
+    canonical coordinates failed inside its first step, on the tuple (q, p)."""
+    kind = type(METHODS[method])
+    for budget in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match=f"{kind.__name__}: root_find_max_steps must be a positive int"):
+            kind(root_find_max_steps=budget)
+    wants = METHODS[method].term_structure
+    if wants is nh.SkewGradientSystem:
+        system, y0, hint = QUARTIC.canonical, QUARTIC.start("canonical"), r" Its reduced form, system\.reduced"
+    elif wants is nh.NonholonomicSystem:
+        system, y0, hint = QUARTIC.adapted, QUARTIC.start("adapted"), ""
+    else:
+        assert wants is nh.AbstractSystem  # the collocation: both kinds
+        return
+    with pytest.raises(ValueError, match=f"integrates a {wants.__name__}, got a {type(system).__name__}.{hint}"):
+        nh.integrate(system, METHODS[method], y0, 0.1, 3)
+    if METHODS[method].composition_obstacle() is None:
+        with pytest.raises(ValueError, match=f"integrates a {wants.__name__}"):
+            nh.integrate(system, nh.Composition(METHODS[method], order=4), y0, 0.1, 3)
