@@ -149,9 +149,10 @@ def test_float32():
     [
         (nh.GonzalezR(), "nhjax method"),
         (nh.Projection(diffrax.Tsit5()), "nhjax method"),
+        (nh.Composition(nh.GonzalezR()), "Composition is an nhjax method"),
         ("Tsit5", "wraps a diffrax solver"),
     ],
-    ids=["nhjax method", "nested", "not a solver"],
+    ids=["nhjax method", "nested", "composition", "not a solver"],
 )
 def test_refuses_what_it_cannot_project(solver, message):
     with pytest.raises(ValueError, match=message):

@@ -435,6 +435,11 @@ class AbstractMethod(diffrax.AbstractSolver):
         # Zero iterations leave every step unsolved, which a run reported as a
         # non-finite state.
         check_positive_int(type(self).__name__, "root_find_max_steps", self.root_find_max_steps)
+        if not (self.root_finder is None or isinstance(self.root_finder, optx.AbstractRootFinder)):
+            raise ValueError(
+                f"{type(self).__name__}: root_finder must be None (the chord iteration) or an optimistix "
+                f"root finder such as optimistix.Newton(rtol, atol), got {self.root_finder!r}."
+            )
 
     def initial_carry(self, system: AbstractSystem, y0: PyTree[Array], args: PyTree) -> PyTree:
         del system, y0, args

@@ -102,6 +102,12 @@ def _not_composable(solver) -> str:
             "composition would not raise its order; Projection(diffrax.Dopri8()) is of order 8 "
             "already."
         )
+    if isinstance(solver, Composition):
+        return (
+            "A composition is composed already: compose the method it composes to the order wanted, "
+            f"Composition(method, order=...) with order one of {sorted(RECOMMENDED_SCHEMES)}, or give the "
+            "coefficients of the whole scheme."
+        )
     return "diffrax's explicit Runge-Kutta solvers are not symmetric, and composing them does not raise their order this way."
 
 

@@ -103,6 +103,12 @@ class DiscreteGradient(AbstractMethod):
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 20
 
+    def __check_init__(self):
+        for name, example in (("discrete_gradient", "nhjax.gonzalez"), ("structure_approximation", "nhjax.midpoint_structure")):
+            value = getattr(self, name)
+            if not callable(value):
+                raise ValueError(f"DiscreteGradient: {name} must be a function such as {example}, got {value!r}.")
+
     def order(self, terms):
         del terms
         return {avf: 2, gonzalez: 2, itoh_abe: 1}.get(

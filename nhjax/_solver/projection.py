@@ -167,7 +167,9 @@ class Projection(diffrax.AbstractWrappedSolver):
     def __init__(self, solver: diffrax.AbstractSolver, root_find_max_steps: int = 10):
         if not isinstance(solver, diffrax.AbstractSolver):
             raise ValueError(f"Projection wraps a diffrax solver, got {type(solver).__name__}.")
-        if isinstance(solver, (AbstractMethod, Projection)):
+        # An nhjax solver says what it keeps (`keeps_constraint`); diffrax's do not. A
+        # composition is no `AbstractMethod`, and this module cannot import it.
+        if isinstance(solver, (AbstractMethod, Projection)) or hasattr(solver, "keeps_constraint"):
             raise ValueError(
                 f"Projection wraps diffrax's solvers of the plain vector field; "
                 f"{type(solver).__name__} is an nhjax method, which keeps the constraint "

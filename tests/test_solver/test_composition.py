@@ -348,6 +348,8 @@ def test_bad_arguments_are_refused():
         nh.Composition(diffrax.Tsit5())
     with pytest.raises(ValueError, match="A projected step is not symmetric"):
         nh.Composition(nh.Projection(diffrax.Dopri8()))
+    with pytest.raises(ValueError, match=r"A composition is composed already: compose the method it composes"):
+        nh.Composition(nh.Composition(nh.GonzalezR(), 4), 6)
     with pytest.raises(ValueError, match="one of \\[2, 4, 6, 8\\]"):
         nh.Composition(nh.GonzalezR(), 5)
     with pytest.raises(ValueError, match="one of"):

@@ -100,6 +100,11 @@ def test_structure_approximation_is_pluggable():
     sol_mid = nh.integrate(quartic.adapted, nh.DiscreteGradient(), x0, 0.1, 1000)
     assert relative_energy_error(sol_avg) <= 1e-13
     assert float(jnp.max(jnp.abs(sol_avg.ys[-1] - sol_mid.ys[-1]))) > 1e-6
+    # A name where the function goes is named when the method is made, not in its step.
+    with pytest.raises(ValueError, match="structure_approximation must be a function such as nhjax.midpoint_structure"):
+        nh.DiscreteGradient(structure_approximation="averaged")
+    with pytest.raises(ValueError, match="discrete_gradient must be a function such as nhjax.gonzalez, got 'avf'"):
+        nh.DiscreteGradient(discrete_gradient="avf")
 
 
 @pytest.mark.parametrize("discrete_gradient", [nh.gonzalez, nh.avf])

@@ -15,6 +15,7 @@ import diffrax
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import nhjax as nh
@@ -101,16 +102,21 @@ QUARTIC = nh.examples.chaotic_quartic()
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_zero_iterations_and_a_system_of_another_kind_are_named(method):
-    """A method refuses a root-finder budget that is not a positive int when it is
-    made (with none, a run reported every unsolved step as a non-finite state), and a
-    run refuses a system of another kind than the method integrates (its
-    `term_structure`) before any step: a method for skew-gradient systems given one in
-    canonical coordinates failed inside its first step, on the tuple (q, p)."""
+def test_bad_root_finders_and_a_system_of_another_kind_are_named(method):
+    """A method refuses a root-finder budget that is not a positive int (with none, a
+    run reported every unsolved step as a non-finite state) and a root finder that is
+    not an optimistix root finder when it is made, and a run refuses a system of
+    another kind than the method integrates (its `term_structure`) before any step: a
+    method for skew-gradient systems given one in canonical coordinates failed inside
+    its first step, on the tuple (q, p)."""
     kind = type(METHODS[method])
     for budget in (0, -1, 2.5, True):
         with pytest.raises(ValueError, match=f"{kind.__name__}: root_find_max_steps must be a positive int"):
             kind(root_find_max_steps=budget)
+    for finder in ("newton", optx.BFGS(rtol=1e-8, atol=1e-8)):
+        with pytest.raises(ValueError, match=f"{kind.__name__}: root_finder must be None .* or an optimistix root finder"):
+            kind(root_finder=finder)
+    assert kind(root_finder=optx.Newton(rtol=1e-10, atol=1e-10)).root_finder is not None
     wants = METHODS[method].term_structure
     if wants is nh.SkewGradientSystem:
         system, y0, hint = QUARTIC.canonical, QUARTIC.start("canonical"), r" Its reduced form, system\.reduced"
