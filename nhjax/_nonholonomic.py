@@ -25,7 +25,7 @@ from ._householder import (
 )
 from ._results import RESULTS, first_failure
 from ._reduced import Derivative, ReducedSystem
-from ._user_function import traced_once
+from ._user_function import check_function, traced_once
 from ._system import (
     AbstractSystem,
     check_dissipation_and_force,
@@ -134,6 +134,14 @@ class NonholonomicSystem(AbstractSystem):
         default=None, converter=traced_once
     )
 
+    def __check_init__(self):
+        check_function("NonholonomicSystem", "hamiltonian", self.hamiltonian, "hamiltonian(q, p, args) -> scalar")
+        check_function("NonholonomicSystem", "constraints", self.constraints, "constraints(q, args) -> (k, n)")
+        check_function(
+            "NonholonomicSystem", "dissipation", self.dissipation, "dissipation(q, p, args) -> (n, n)", optional=True
+        )
+        check_function("NonholonomicSystem", "force", self.force, "force(t, q, p, args) -> (n,)", optional=True)
+
     @classmethod
     def from_lagrangian(
         cls,
@@ -169,6 +177,7 @@ class NonholonomicSystem(AbstractSystem):
         mean what they mean for a system given by $H$, in velocities: $D$ of the
         Rayleigh function $\tfrac12\dot q^TD\dot q$, and the generalized force; the
         system evaluates them at $\dot q = \partial H/\partial p$."""
+        check_function("NonholonomicSystem.from_lagrangian", "lagrangian", lagrangian, "lagrangian(q, qdot, args) -> scalar")
         hamiltonian = LegendreHamiltonian(lagrangian)
         return cls(
             hamiltonian,

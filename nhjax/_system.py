@@ -19,7 +19,7 @@ from jaxtyping import Array, Float, PyTree
 
 from ._ledger import Ledgered
 from ._results import first_failure, RESULTS
-from ._user_function import traced_once
+from ._user_function import check_function, traced_once
 
 
 class AbstractSystem(diffrax.AbstractTerm):
@@ -213,6 +213,12 @@ class SkewGradientSystem(AbstractSystem):
     force: Callable[[Any, Float[Array, " N"], Any], Float[Array, " N"]] | None = eqx.field(
         default=None, converter=traced_once
     )
+
+    def __check_init__(self):
+        check_function("SkewGradientSystem", "hamiltonian", self.hamiltonian, "hamiltonian(x, args) -> scalar")
+        check_function("SkewGradientSystem", "structure", self.structure, "structure(x, args) -> (N, N)")
+        check_function("SkewGradientSystem", "dissipation", self.dissipation, "dissipation(x, args) -> (N, N)", optional=True)
+        check_function("SkewGradientSystem", "force", self.force, "force(t, x, args) -> (N,)", optional=True)
 
     def gradient(self, x: Float[Array, " N"], args: Any) -> Float[Array, " N"]:
         return jax.grad(self.hamiltonian)(x, args)

@@ -37,3 +37,14 @@ def traced_once(function: Callable | None) -> Callable | None:
     if function is None or isinstance(function, UserFunction) or getattr(function, "owns_tracing", False):
         return function
     return UserFunction(function)
+
+
+def check_function(owner: str, name: str, value: Any, signature: str, optional: bool = False) -> None:
+    """A `ValueError` naming `owner`'s `name` unless `value` (or the function a
+    `UserFunction` wraps) is callable, or `None` where it is `optional`: a name or a
+    number given for a function was taken and failed only when a run traced it."""
+    function = value.function if isinstance(value, UserFunction) else value
+    if (function is None and optional) or callable(function):
+        return
+    alternative = " or None" if optional else ""
+    raise ValueError(f"{owner}: {name} must be a function {signature}{alternative}, got {function!r}.")

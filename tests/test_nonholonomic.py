@@ -146,6 +146,20 @@ def test_bad_hamiltonians_and_states_are_named():
         nh.integrate(nh.NonholonomicSystem(GEARBOX.canonical.hamiltonian, lambda q, args: jnp.eye(3)), nh.GonzalezR(), (q, p), 0.1, 3)
     with pytest.raises(ValueError, match="central_difference"):
         nh.GonzalezR(derivative="finite")
+    # What is not a function, where one goes, is named when the system is made.
+    hamiltonian = GEARBOX.canonical.hamiltonian
+    with pytest.raises(ValueError, match=r"NonholonomicSystem: hamiltonian must be a function hamiltonian\(q, p, args\)"):
+        nh.NonholonomicSystem("0.5 * p @ p", constraints)
+    with pytest.raises(ValueError, match=r"NonholonomicSystem: constraints must be a function .*, got None"):
+        nh.NonholonomicSystem(hamiltonian, None)
+    with pytest.raises(ValueError, match=r"NonholonomicSystem: force must be a function .* or None, got 0.0"):
+        nh.NonholonomicSystem(hamiltonian, constraints, force=0.0)
+    with pytest.raises(ValueError, match=r"NonholonomicSystem: dissipation must be a function .* or None"):
+        nh.NonholonomicSystem(hamiltonian, constraints, dissipation=jnp.eye(3))
+    with pytest.raises(ValueError, match=r"from_lagrangian: lagrangian must be a function lagrangian\(q, qdot, args\)"):
+        nh.NonholonomicSystem.from_lagrangian(None, constraints)
+    with pytest.raises(ValueError, match=r"SkewGradientSystem: structure must be a function structure\(x, args\)"):
+        nh.SkewGradientSystem(lambda x, args: x @ x, jnp.zeros((2, 2)))
     # A slightly perturbed but projected momentum is fine.
     projected = GEARBOX.canonical.project_momentum(q, p + 1e-6)
     assert nh.integrate(GEARBOX.canonical, nh.GonzalezF(), (q, projected), 0.1, 3).result == nh.RESULTS.successful
