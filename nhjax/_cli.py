@@ -455,7 +455,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 def _run_command(arguments, parser, simulate) -> int:
     if arguments.command == "demo":
         if not (math.isfinite(arguments.dt) and arguments.dt > 0):
-            parser.error(f"--dt must be positive, got {arguments.dt}")
+            parser.error(f"--dt must be positive and finite, got {arguments.dt}")
         if arguments.steps < 1:
             parser.error(f"--steps must be a positive integer, got {arguments.steps}")
         return _demo(arguments)
@@ -494,9 +494,9 @@ def _checked_steps(parser, arguments) -> int:
     """The number of steps t1/h, after checking the simulate options; argparse errors
     (exit status 2) otherwise."""
     if not (math.isfinite(arguments.dt) and arguments.dt > 0):
-        parser.error(f"--dt must be positive, got {arguments.dt}")
+        parser.error(f"--dt must be positive and finite, got {arguments.dt}")
     if not (math.isfinite(arguments.t1) and arguments.t1 > 0):
-        parser.error(f"--t1 must be positive, got {arguments.t1}")
+        parser.error(f"--t1 must be positive and finite, got {arguments.t1}")
     n_steps = round(arguments.t1 / arguments.dt)
     if n_steps < 1 or abs(n_steps * arguments.dt - arguments.t1) > 1e-9 * arguments.t1:
         parser.error(

@@ -399,11 +399,12 @@ def test_unknown_system_or_method_lists_the_valid_ones():
 
 def test_bad_simulate_numbers_give_a_message_and_nonzero_exit(capsys):
     out = _run("simulate", "sleigh", "--method", "sidla", "--dt", "0", "--t1", "1")
-    assert out.returncode != 0 and "--dt must be positive, got 0.0" in out.stderr
+    assert out.returncode != 0 and "--dt must be positive and finite, got 0.0" in out.stderr
     for arguments, message in [
         (["--dt", "-0.1", "--t1", "1"], "--dt must be positive"),
-        (["--dt", "nan", "--t1", "1"], "--dt must be positive"),
+        (["--dt", "nan", "--t1", "1"], "--dt must be positive and finite, got nan"),
         (["--dt", "0.1", "--t1", "-1"], "--t1 must be positive"),
+        (["--dt", "0.1", "--t1", "inf"], "--t1 must be positive and finite, got inf"),
         (["--dt", "0.3", "--t1", "1"], "whole number of steps: t1/h = 3.33333"),
         (["--dt", "0.1", "--t1", "1", "--save-every", "3"], "divisor of the number of steps t1/h = 10, got 3"),
         (["--dt", "0.1", "--t1", "1", "--save-every", "2", "--chunk-steps", "5"], "multiple of --save-every 2, got 5"),
