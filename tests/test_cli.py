@@ -223,6 +223,40 @@ def test_the_command_asks_for_one_cpu_device_per_usable_core(monkeypatch, tmp_pa
     assert int(devices) == 2
 
 
+def test_the_command_keeps_its_compiled_programs_for_its_next_run(monkeypatch, tmp_path):
+    """The command points JAX's persistent compilation cache at the user's cache folder,
+    bounded, unless `JAX_COMPILATION_CACHE_DIR` names one (kept); a run writes its
+    programs there and a rerun reads them back: the same trajectory, bitwise, and
+    nothing new in the cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "users"))
+    _nhjax_command.use_compilation_cache()
+    assert os.environ["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path / "users")
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_MAX_SIZE", raising=False)
+    _nhjax_command.use_compilation_cache()
+    cache = tmp_path / "nhjax" / "compilation"
+    assert os.environ["JAX_COMPILATION_CACHE_DIR"] == str(cache) and cache.is_dir()
+    assert os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] == str(2**30)
+    # The suite's setting, explicit: every program is cached, however fast it compiled.
+    monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR")
+    command = "import sys, _nhjax_command; sys.exit(_nhjax_command.main(sys.argv[1:]))"
+    entries, trajectories = [], []
+    for run in range(2):
+        out = tmp_path / f"run{run}.npz"
+        arguments = ["simulate", "sleigh", "--method", "sidla", "--dt", "0.1", "--t1", "2", "--no-progress"]
+        finished = subprocess.run(
+            [sys.executable, "-c", command, *arguments, "--out", str(out)], capture_output=True, text=True, timeout=300
+        )
+        assert finished.returncode == 0, finished.stderr
+        entries.append(sorted(path.name for path in cache.glob("*-cache")))
+        trajectories.append(dict(np.load(out)))
+    assert entries[0] and entries[1] == entries[0]
+    for name, values in trajectories[0].items():
+        np.testing.assert_array_equal(trajectories[1][name], values)
+
+
 def test_the_flag_probe_is_asked_once_per_jaxlib_version(monkeypatch, tmp_path):
     """`xla_knows` remembers each answer for this jaxlib in the user's cache, and asks a
     child process again where the cache is unreadable."""
