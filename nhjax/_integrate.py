@@ -128,10 +128,11 @@ def integrate(
 
     **Errors.** Wrong shapes, a method for another kind of system, a non-integer
     `n_steps`, and a concrete `dt` that is not positive and finite, `t0` or `args` leaf
-    that is not finite raise a `ValueError` at once. Everything else is a `nhjax.RESULTS` code (the README lists them): with
-    `throw=False` it is set per trajectory; with `throw=True` a concrete call raises a
-    `RuntimeError` with its message and the step and time of the failure, and a traced
-    one (under `jit`, `vmap`, `grad`) a runtime error with its message.
+    that is not finite raise a `ValueError` at once. Everything else is a
+    `nhjax.RESULTS` code (the README lists them): with `throw=False` it is set per
+    trajectory; with `throw=True` a concrete call raises a `RuntimeError` with its
+    message and the step and time of the failure, and a traced one (under `jit`,
+    `vmap`, `grad`) a runtime error with its message.
     """
     check_step_counts(n_steps, save_every, max_steps)
     check_step_size(dt, t0)
