@@ -13,6 +13,10 @@ from .._nonholonomic import NonholonomicSystem
 from .._system import SkewGradientSystem
 from ._chaotic_quartic import _constraints, _frame, _structure
 from ._example import AbstractExample
+from ._parameters import require_finite
+
+
+_NAME = "contact oscillator"
 
 
 def _potential(q, epsilon):
@@ -115,6 +119,10 @@ class ContactOscillator(AbstractExample):
 
     epsilon: float = eqx.field(default=0.5, static=True)
     gauge: float = eqx.field(default=1.0, static=True)
+
+    def __check_init__(self):
+        # Any real values: a negative epsilon or gauge is another oscillator of the family.
+        require_finite(_NAME, epsilon=self.epsilon, gauge=self.gauge)
 
     name: ClassVar[str] = "contact-oscillator"
     title: ClassVar[str] = (

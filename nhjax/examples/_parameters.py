@@ -17,20 +17,33 @@ def parameters(args, names: tuple[str, ...], example: str) -> tuple:
         ) from None
 
 
+def _number(example: str, name: str, value) -> float:
+    """A concrete parameter as a float, or a `ValueError` naming it where it is not a
+    real number (a string, even one that reads as a number; an array of several
+    values)."""
+    try:
+        if isinstance(value, (str, bytes)):
+            raise TypeError
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"The {example}'s {name} must be a real number, got {name}={value!r}.") from None
+
+
 def require_positive(example: str, **values) -> None:
     """A `ValueError` for a concrete parameter that is not positive and finite (traced
     ones are left to the initial-state checks of `nhjax.integrate`)."""
     for name, value in values.items():
         if isinstance(value, jax.core.Tracer):
             continue
-        if not (math.isfinite(float(value)) and float(value) > 0):
+        number = _number(example, name, value)
+        if not (math.isfinite(number) and number > 0):
             raise ValueError(f"The {example}'s {name} must be positive and finite, got {name}={value}.")
 
 
 def require_finite(example: str, **values) -> None:
     """A `ValueError` for a concrete parameter that is not finite."""
     for name, value in values.items():
-        if not isinstance(value, jax.core.Tracer) and not math.isfinite(float(value)):
+        if not isinstance(value, jax.core.Tracer) and not math.isfinite(_number(example, name, value)):
             raise ValueError(f"The {example}'s {name} must be finite, got {name}={value}.")
 
 

@@ -53,6 +53,18 @@ def test_the_parameters_make_the_example_again(name):
     assert not np.array_equal(np.concatenate(jax.tree.leaves(changed)), np.concatenate(jax.tree.leaves(example.initial_state())))
 
 
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_a_parameter_that_is_not_a_finite_number_is_named(name):
+    """Every parameter of every example refuses NaN and a string when the example is
+    made, naming itself (the contact oscillator took both, and the others' string was
+    refused by float() without the parameter's name)."""
+    factory = EXAMPLES[name]
+    for parameter in factory().parameters():
+        for bad in (float("nan"), "0.5"):
+            with pytest.raises(ValueError, match=parameter):
+                factory(**{parameter: bad})
+
+
 def test_a_missing_form_is_named():
     with pytest.raises(ValueError, match="The suslov example has no canonical form; it has adapted"):
         nh.examples.suslov().start("canonical")
