@@ -5,6 +5,7 @@ computes in."""
 import math
 from typing import Any
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,10 +27,15 @@ def trace_floats(args: PyTree) -> PyTree:
 
 
 def check_method(system, method) -> None:
-    """`ValueError` unless `system` is of the kind `method` integrates, its
-    `term_structure` (a class; diffrax's solvers take any term): a method for
-    skew-gradient systems given a `NonholonomicSystem` failed deep inside its first
-    step, on the tuple (q, p) it cannot read."""
+    """`ValueError` unless `method` is a solver (an nhjax method or diffrax's) and
+    `system` is of the kind it integrates, its `term_structure` (a class; diffrax's
+    solvers take any term): a method for skew-gradient systems given a
+    `NonholonomicSystem` failed deep inside its first step, on the tuple (q, p) it
+    cannot read."""
+    if not isinstance(method, diffrax.AbstractSolver):
+        raise ValueError(
+            f"method must be an nhjax method such as nhjax.GonzalezR() or a diffrax solver, got {method!r}."
+        )
     kind = getattr(method, "term_structure", None)
     if isinstance(kind, type) and not isinstance(system, kind):
         hint = ""

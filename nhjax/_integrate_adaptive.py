@@ -73,6 +73,18 @@ def integrate_adaptive(
             stacklevel=2,
         )
         method = solver
+    method = diffrax.Dopri8() if method is None else method
+    if not isinstance(method, diffrax.AbstractSolver):
+        raise ValueError(
+            f"method must be a diffrax solver such as diffrax.Dopri8() or nhjax.Projection(diffrax.Dopri8()), "
+            f"got {method!r}."
+        )
+    if not isinstance(method, Projection) and hasattr(method, "keeps_constraint"):
+        # An nhjax method or a composition of one: no error estimate to adapt steps by.
+        raise ValueError(
+            f"{type(method).__name__} takes fixed steps: run it with nhjax.integrate; integrate_adaptive "
+            "takes diffrax's adaptive solvers, alone or in nhjax.Projection."
+        )
     if not is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
     system.check_shapes(y0, args)
@@ -98,7 +110,7 @@ def integrate_adaptive(
     check_save_times(save_at, t0, t1)
     solution = _integrate_adaptive(
         system,
-        diffrax.Dopri8() if method is None else method,
+        method,
         y0,
         t0,
         t1,

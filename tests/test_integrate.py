@@ -278,6 +278,14 @@ def test_adaptive_baseline_bad_input_and_result_codes():
         nh.integrate_adaptive(GEARBOX.canonical, y0, 0.0)
     with pytest.raises(ValueError, match="rtol and atol"):
         nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, rtol=0.0)
+    # A name for a method, and an nhjax method, which has no error estimate to adapt by.
+    with pytest.raises(ValueError, match="method must be a diffrax solver such as diffrax.Dopri8"):
+        nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, method="dopri8")
+    for fixed_steps in (nh.GonzalezR(), nh.Composition(nh.GonzalezR(), 4)):
+        with pytest.raises(ValueError, match=f"{type(fixed_steps).__name__} takes fixed steps: run it with nhjax.integrate"):
+            nh.integrate_adaptive(GEARBOX.canonical, y0, 1.0, method=fixed_steps)
+    with pytest.raises(ValueError, match="method must be an nhjax method such as nhjax.GonzalezR.. or a diffrax solver, got 'gonzalez-r'"):
+        nh.integrate(GEARBOX.canonical, "gonzalez-r", y0, 0.1, 3)
     for save_at, message in [([0.0, 2.0], "inside"), ([-0.5, 1.0], "inside"), ([0.5, 0.2], "sorted"), ([0.0, float("nan")], "finite")]:
         for throw in (True, False):
             with pytest.raises(ValueError, match=message):
