@@ -54,6 +54,11 @@ def check_step_counts(n_steps, save_every, max_steps=None) -> None:
     if not is_int(save_every) or save_every < 1:
         raise ValueError(f"save_every must be a positive int, got {save_every!r}.")
     if max_steps is None:
+        if isinstance(n_steps, jax.core.Tracer):
+            raise ValueError(
+                "n_steps must be a positive int, got a traced value: a traced number of steps needs "
+                "max_steps, a static bound on it."
+            )
         if not is_int(n_steps) or n_steps < 1:
             raise ValueError(f"n_steps must be a positive int, got {n_steps!r}.")
         if n_steps % save_every != 0:
@@ -78,6 +83,15 @@ def check_step_counts(n_steps, save_every, max_steps=None) -> None:
         raise ValueError(f"n_steps must be an integer scalar, got {n_steps!r}.")
     if concrete is not None and not 1 <= concrete <= max_steps:
         raise ValueError(f"n_steps must lie in [1, max_steps] = [1, {max_steps}], got {concrete}.")
+
+
+def check_constraint_flag(check_constraint) -> None:
+    """`ValueError` unless `check_constraint` is a bool or a boolean scalar (traced ones
+    too): a string was taken for True."""
+    if isinstance(check_constraint, bool):
+        return
+    if not (hasattr(check_constraint, "dtype") and jnp.ndim(check_constraint) == 0 and check_constraint.dtype == bool):
+        raise ValueError(f"check_constraint must be True, False or a boolean scalar, got {check_constraint!r}.")
 
 
 def check_step_size(dt, t0=0.0) -> None:

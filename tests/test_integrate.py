@@ -112,6 +112,14 @@ def test_step_counts_outside_the_bound():
         nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 12, save_every=3, max_steps=40)
     with pytest.raises(ValueError, match="n_steps must be an integer scalar"):
         nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, jnp.array(10.0), max_steps=40)
+    # Without the bound, a traced count is named with what it needs.
+    with pytest.raises(ValueError, match="a traced number of steps needs max_steps, a static bound on it"):
+        jax.jit(lambda n: nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, n).ys)(10)
+    # A string was taken for True.
+    with pytest.raises(ValueError, match="check_constraint must be True, False or a boolean scalar, got 'no'"):
+        nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 10, check_constraint="no")
+    with pytest.raises(ValueError, match="check_constraint must be True, False or a boolean scalar"):
+        nh.integrate_ensemble(QUARTIC.adapted, METHOD, x0[None], 0.1, 10, check_constraint=1)
     run = jax.jit(lambda n: nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, n, max_steps=40, throw=False))
     for n in (0, 41):
         solution = run(n)
