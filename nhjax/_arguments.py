@@ -85,6 +85,13 @@ def check_step_counts(n_steps, save_every, max_steps=None) -> None:
         raise ValueError(f"n_steps must lie in [1, max_steps] = [1, {max_steps}], got {concrete}.")
 
 
+def check_switch(name: str, value) -> None:
+    """`ValueError` unless the option `name` (`throw`, `progress`) is True or False: a
+    string such as "False" would have been taken for True."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}.")
+
+
 def check_constraint_flag(check_constraint) -> None:
     """`ValueError` unless `check_constraint` is a bool or a boolean scalar (traced ones
     too): a string was taken for True."""

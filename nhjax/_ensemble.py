@@ -12,7 +12,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
-from ._arguments import check_args, check_constraint_flag, check_method, check_step_counts, check_step_size, state_dtype, trace_floats
+from ._arguments import check_args, check_constraint_flag, check_method, check_step_counts, check_step_size, check_switch, state_dtype, trace_floats
 from ._integrate import integrate
 from ._solution import Solution
 from ._results import result_codes, RESULTS, SUCCESS
@@ -76,6 +76,7 @@ def integrate_ensemble(
     check_step_counts(n_steps, save_every)
     check_step_size(dt, t0)
     check_constraint_flag(check_constraint)
+    check_switch("throw", throw)
     check_args(args)
     leaves = jax.tree.leaves(y0s)
     if not leaves or any(jnp.ndim(leaf) < 1 for leaf in leaves):

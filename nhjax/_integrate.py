@@ -34,7 +34,7 @@ import numpy as np
 from jaxtyping import Array, PyTree
 
 from ._adjoints import checked_adjoint, default_adjoint, replays_derivatives
-from ._arguments import args_result, check_args, check_constraint_flag, check_method, check_step_counts, check_step_size, state_dtype, trace_floats
+from ._arguments import args_result, check_args, check_constraint_flag, check_method, check_step_counts, check_step_size, check_switch, state_dtype, trace_floats
 from ._fixed_steps import fixed_step_run
 from ._replay import replayed_run
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
@@ -137,6 +137,8 @@ def integrate(
     check_step_counts(n_steps, save_every, max_steps)
     check_step_size(dt, t0)
     check_constraint_flag(check_constraint)
+    check_switch("throw", throw)
+    check_switch("progress", progress)
     check_args(args)
     system.check_shapes(y0, args)
     check_method(system, method)

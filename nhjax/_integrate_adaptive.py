@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ._adjoints import adjoint_or_default
-from ._arguments import args_result, check_args, check_save_times, default_tolerance, state_dtype, trace_floats
+from ._arguments import args_result, check_args, check_save_times, check_switch, default_tolerance, state_dtype, trace_floats
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from ._ledger import observe, run_start
 from ._solution import method_outcome, raise_failure, Solution, solution_from_saves
@@ -87,6 +87,7 @@ def integrate_adaptive(
         )
     if not is_int(max_steps) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}.")
+    check_switch("throw", throw)
     system.check_shapes(y0, args)
     check_args(args)
     dtype = state_dtype(y0)

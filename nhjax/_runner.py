@@ -26,7 +26,7 @@ from ._chunk_files import (
     with_identity,
     write_atomically,
 )
-from ._arguments import check_args, check_method, check_step_counts, check_step_size, trace_floats
+from ._arguments import check_args, check_method, check_step_counts, check_step_size, check_switch, trace_floats
 from ._ensemble import checked_devices, integrate_ensemble
 from ._integrate import integrate
 from ._solution import Solution
@@ -139,6 +139,8 @@ def run_chunked(
     if isinstance(dt, jax.core.Tracer) or jnp.ndim(dt) != 0:
         raise ValueError("dt must be a concrete scalar: a chunked run cannot be traced.")
     check_step_size(dt)
+    check_switch("throw", throw)
+    check_switch("progress", progress)
     check_args(args)
     n_steps, save_every = int(n_steps), int(save_every)
     y0 = jax.tree.map(jnp.asarray, y0)

@@ -120,6 +120,13 @@ def test_step_counts_outside_the_bound():
         nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 10, check_constraint="no")
     with pytest.raises(ValueError, match="check_constraint must be True, False or a boolean scalar"):
         nh.integrate_ensemble(QUARTIC.adapted, METHOD, x0[None], 0.1, 10, check_constraint=1)
+    for name in ("throw", "progress"):
+        with pytest.raises(ValueError, match=f"{name} must be True or False, got 'False'"):
+            nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, 10, **{name: "False"})
+    with pytest.raises(ValueError, match="throw must be True or False"):
+        nh.integrate_ensemble(QUARTIC.adapted, METHOD, x0[None], 0.1, 10, throw="False")
+    with pytest.raises(ValueError, match="throw must be True or False"):
+        nh.integrate_adaptive(QUARTIC.adapted, x0, 1.0, throw="False")
     run = jax.jit(lambda n: nh.integrate(QUARTIC.adapted, METHOD, x0, 0.1, n, max_steps=40, throw=False))
     for n in (0, 41):
         solution = run(n)

@@ -223,6 +223,8 @@ def test_a_batch_runs_as_one_vmapped_program_per_chunk(chunked_run, tmp_path):
     assert np.max(np.abs(batch.energy / batch.energy[:, :1] - 1)) < 1e-2
     with pytest.raises(ValueError, match="must be a 1-D array"):
         run_chunked(GEARBOX.canonical, diffrax.Tsit5(), (states[0][None], states[1][None]), 0.1, 10, directory=tmp_path / "bad")
+    with pytest.raises(ValueError, match="progress must be True or False, got 'no'"):
+        run_chunked(GEARBOX.canonical, nh.SIDLA(), Y0, 0.1, 10, directory=tmp_path / "bad", progress="no")
 
 
 def test_a_method_whose_constraint_drifts_continues_across_chunks(tmp_path):
