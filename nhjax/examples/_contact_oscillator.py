@@ -120,15 +120,15 @@ class ContactOscillator(AbstractExample):
     epsilon: float = eqx.field(default=0.5, static=True)
     gauge: float = eqx.field(default=1.0, static=True)
 
-    def __check_init__(self):
-        # Any real values: a negative epsilon or gauge is another oscillator of the family.
-        require_finite(_NAME, epsilon=self.epsilon, gauge=self.gauge)
-
     name: ClassVar[str] = "contact-oscillator"
     title: ClassVar[str] = (
         "McLachlan & Perlmutter's nonlinear contact oscillator (Figure 5), with a second first "
         "integral H_y that reversible methods keep near its value"
     )
+
+    def __check_init__(self):
+        # Any real values: a negative epsilon or gauge is another oscillator of the family.
+        require_finite(_NAME, epsilon=self.epsilon, gauge=self.gauge)
 
     @property
     def canonical(self) -> NonholonomicSystem:
