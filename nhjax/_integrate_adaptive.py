@@ -15,6 +15,7 @@ from ._arguments import args_result, check_args, check_save_times, check_switch,
 from ._results import first_failure, from_diffrax, nan_where_failed, RESULTS
 from ._ledger import observe, run_start
 from ._solution import method_outcome, raise_failure, Solution, solution_from_saves
+from ._solver.base import is_nhjax_solver
 from ._solver.projection import Projection
 from ._system import AbstractSystem, in_state_dtype, is_int
 
@@ -79,7 +80,7 @@ def integrate_adaptive(
             f"method must be a diffrax solver such as diffrax.Dopri8() or nhjax.Projection(diffrax.Dopri8()), "
             f"got {method!r}."
         )
-    if not isinstance(method, Projection) and hasattr(method, "keeps_constraint"):
+    if is_nhjax_solver(method) and not isinstance(method, Projection):
         # An nhjax method or a composition of one: no error estimate to adapt steps by.
         raise ValueError(
             f"{type(method).__name__} takes fixed steps: run it with nhjax.integrate; integrate_adaptive "

@@ -7,7 +7,6 @@ travels in the solver state as an `nhjax.RESULTS` code naming its cause
 (`step_failure`), while the step reports `diffrax.RESULTS.breakdown`;
 `nhjax.integrate` reports the nhjax code."""
 
-import numbers
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -25,7 +24,7 @@ from .._linalg import solve
 from .._reduced import metric_is, metric_of
 from .._rare_branch import rarely
 from .._results import first_failure, from_diffrax, nan_where_failed, RESULTS
-from .._system import AbstractSystem
+from .._system import AbstractSystem, is_int
 from .._tangents import split_by_tangents
 from .chord import chord_inverse, ChordSolution, PresetChord
 
@@ -243,8 +242,15 @@ def check_optional_bool(owner: str, name: str, value) -> None:
 def check_positive_int(owner: str, name: str, value) -> None:
     """A `ValueError` naming `owner`'s option `name` unless `value` is a positive int (a
     bool is not one)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+    if not is_int(value) or value < 1:
         raise ValueError(f"{owner}: {name} must be a positive int, got {value!r}.")
+
+
+def is_nhjax_solver(solver) -> bool:
+    """Whether `solver` is one of nhjax's (a method, a composition, a projection): each
+    says what it keeps (`keeps_constraint`), diffrax's solvers do not. A composition is
+    no `AbstractMethod`."""
+    return hasattr(solver, "keeps_constraint")
 
 
 # How many step displacements the predictors of GONZALEZ-R and of EP-collocation keep

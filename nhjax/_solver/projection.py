@@ -20,11 +20,11 @@ from .._results import first_failure, RESULTS
 from .._system import AbstractSystem
 from .base import (
     _implicit_root,
-    AbstractMethod,
     AbstractCountingState,
     all_finite,
     check_positive_int,
     default_root_finder,
+    is_nhjax_solver,
     no_gradient,
     ROUNDING_FLOOR,
     step_return,
@@ -167,9 +167,7 @@ class Projection(diffrax.AbstractWrappedSolver):
     def __init__(self, solver: diffrax.AbstractSolver, root_find_max_steps: int = 10):
         if not isinstance(solver, diffrax.AbstractSolver):
             raise ValueError(f"Projection wraps a diffrax solver, got {type(solver).__name__}.")
-        # An nhjax solver says what it keeps (`keeps_constraint`); diffrax's do not. A
-        # composition is no `AbstractMethod`, and this module cannot import it.
-        if isinstance(solver, (AbstractMethod, Projection)) or hasattr(solver, "keeps_constraint"):
+        if is_nhjax_solver(solver):
             raise ValueError(
                 f"Projection wraps diffrax's solvers of the plain vector field; "
                 f"{type(solver).__name__} is an nhjax method, which keeps the constraint "

@@ -21,12 +21,12 @@ def _number(example: str, name: str, value) -> float:
     """A concrete parameter as a float, or a `ValueError` naming it where it is not a
     real number (a string, even one that reads as a number; an array of several
     values)."""
-    try:
-        if isinstance(value, (str, bytes)):
-            raise TypeError
-        return float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"The {example}'s {name} must be a real number, got {name}={value!r}.") from None
+    if not isinstance(value, (str, bytes)):
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            pass
+    raise ValueError(f"The {example}'s {name} must be a real number, got {name}={value!r}.")
 
 
 def require_positive(example: str, **values) -> None:
