@@ -46,8 +46,9 @@ def use_compilation_cache() -> None:
     at most `COMPILATION_CACHE_BYTES` unless `JAX_COMPILATION_CACHE_MAX_SIZE` says
     otherwise; `JAX_ENABLE_COMPILATION_CACHE=false` turns it off. Most of a short run
     is compilation, which a rerun of the same system and method (a resumed run, another
-    step size or end time, `nhjax reproduce` again) then reads back: `nhjax simulate
-    disk-3d --method gonzalez-r` took 13.7 s and then 4.9 s. JAX caches only programs
+    step size or end time, `nhjax reproduce` again) then reads back
+    (`benchmarks/compilation_cache.py` times a command without the cache, filling it and
+    reading it). JAX caches only programs
     that took a second or more to compile (`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`),
     keyed by the program, XLA's flags and the versions of JAX and XLA, so a changed
     program or install compiles anew. The package itself never sets it: JAX's
