@@ -65,6 +65,20 @@ def _is_near(x, x1, delta):
     return jnp.abs(delta) < switch * (1.0 + jnp.abs(0.5 * (x + x1)))
 
 
+def _check_points(name: str, x, x1) -> None:
+    r"""Raise a `ValueError` naming `name` unless `x` and `x1` are two points of one
+    space, floating-point arrays of one shape $(N,)$: what every discrete gradient here
+    differences. Checked on shapes and dtypes only, when a function is traced."""
+    shapes = (jnp.shape(x), jnp.shape(x1))
+    if len(shapes[0]) != 1 or shapes[0] != shapes[1]:
+        raise ValueError(
+            f"{name} takes two points of one shape (N,), got shapes {shapes[0]} and {shapes[1]}"
+        )
+    for point in (x, x1):
+        if not jnp.issubdtype(jnp.result_type(point), jnp.floating):
+            raise ValueError(f"{name} takes floating-point points, got dtype {jnp.result_type(point)}")
+
+
 def avf(
     f: ScalarFunction,
     x: Float[Array, " N"],
@@ -84,6 +98,7 @@ def avf(
     """
     if nodes < 1:
         raise ValueError(f"avf needs at least one quadrature node, got nodes={nodes}")
+    _check_points("avf", x, x1)
     xi, weights = np.polynomial.legendre.leggauss(nodes)
     xi = jnp.asarray(0.5 * (xi + 1.0), dtype=x.dtype)
     weights = jnp.asarray(0.5 * weights, dtype=x.dtype)
@@ -205,6 +220,7 @@ def gonzalez(
     `f_x`: $f(x)$, where the caller has it (a method's residual, evaluated at many $x'$
     from one $x$, computes it once a step), else computed here.
     """
+    _check_points("gonzalez", x, x1)
     return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, f_x=f_x)
 
 
@@ -407,6 +423,7 @@ def itoh_abe(
     divided difference is the two-point Gauss quadrature of $\partial_i f$ along the
     coordinate segment (see the module docstring).
     """
+    _check_points("itoh_abe", x, x1)
     (n,) = x.shape
     index = jnp.arange(n)
     from_new = index[None, :] < jnp.arange(n + 1)[:, None]

@@ -237,6 +237,25 @@ def test_avf_node_count_is_configurable_and_exact_for_polynomials():
         nh.avf(f, x, x1, None, nodes=0)
 
 
+@pytest.mark.parametrize("discrete_gradient", [nh.avf, nh.gonzalez, nh.itoh_abe], ids=lambda dg: dg.__name__)
+def test_points_of_other_shapes_or_integer_points_are_named(discrete_gradient):
+    """Two points of different shapes, a matrix, a scalar or integer coordinates: a
+    ValueError naming the function and the problem, where JAX's own errors (broadcasting,
+    unpacking, dtypes) did not say what was wrong."""
+    f = lambda x, args: jnp.sum(x**4)  # noqa: E731
+    name = discrete_gradient.__name__
+    for x, x1 in (
+        (jnp.ones(3), jnp.ones(4)),
+        (jnp.ones((2, 3)), jnp.ones((2, 3))),
+        (jnp.array(1.0), jnp.array(2.0)),
+    ):
+        with pytest.raises(ValueError, match=rf"{name} takes two points of one shape \(N,\), got shapes"):
+            discrete_gradient(f, x, x1, None)
+    with pytest.raises(ValueError, match=f"{name} takes floating-point points, got dtype int"):
+        discrete_gradient(f, jnp.arange(3), jnp.arange(3) + 1.0, None)
+    assert discrete_gradient(f, jnp.ones(3), jnp.full(3, 2.0), None).shape == (3,)
+
+
 class _Weighted(eqx.Module):
     """f(x, args) = a sum(w sin(x)) + x0 |x|^2, a callable whose array w is differentiated
     like an argument."""
