@@ -41,6 +41,7 @@ from jaxtyping import Array, Float
 
 from ._linalg import safe_norm
 from ._rare_branch import rarely
+from ._system import require_floating_vector
 from ._tangents import split_by_tangents
 
 
@@ -66,17 +67,13 @@ def _is_near(x, x1, delta):
 
 
 def _check_points(name: str, x, x1) -> None:
-    r"""Raise a `ValueError` naming `name` unless `x` and `x1` are two points of one
-    space, floating-point arrays of one shape $(N,)$: what every discrete gradient here
-    differences. Checked on shapes and dtypes only, when a function is traced."""
-    shapes = (jnp.shape(x), jnp.shape(x1))
-    if len(shapes[0]) != 1 or shapes[0] != shapes[1]:
-        raise ValueError(
-            f"{name} takes two points of one shape (N,), got shapes {shapes[0]} and {shapes[1]}"
-        )
-    for point in (x, x1):
-        if not jnp.issubdtype(jnp.result_type(point), jnp.floating):
-            raise ValueError(f"{name} takes floating-point points, got dtype {jnp.result_type(point)}")
+    """A `ValueError` naming `name` unless `x` and `x1` are two points of one space,
+    floating-point vectors of one shape: what every discrete gradient here differences.
+    Checked on shapes and dtypes only, when a function is traced."""
+    require_floating_vector(f"{name}'s x", x)
+    require_floating_vector(f"{name}'s x1", x1)
+    if jnp.shape(x) != jnp.shape(x1):
+        raise ValueError(f"{name} takes two points of one shape, got shapes {jnp.shape(x)} and {jnp.shape(x1)}.")
 
 
 def avf(

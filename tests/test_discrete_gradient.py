@@ -244,14 +244,12 @@ def test_points_of_other_shapes_or_integer_points_are_named(discrete_gradient):
     unpacking, dtypes) did not say what was wrong."""
     f = lambda x, args: jnp.sum(x**4)  # noqa: E731
     name = discrete_gradient.__name__
-    for x, x1 in (
-        (jnp.ones(3), jnp.ones(4)),
-        (jnp.ones((2, 3)), jnp.ones((2, 3))),
-        (jnp.array(1.0), jnp.array(2.0)),
-    ):
-        with pytest.raises(ValueError, match=rf"{name} takes two points of one shape \(N,\), got shapes"):
-            discrete_gradient(f, x, x1, None)
-    with pytest.raises(ValueError, match=f"{name} takes floating-point points, got dtype int"):
+    with pytest.raises(ValueError, match=rf"{name} takes two points of one shape, got shapes \(3,\) and \(4,\)"):
+        discrete_gradient(f, jnp.ones(3), jnp.ones(4), None)
+    for x, shape in ((jnp.ones((2, 3)), r"\(2, 3\)"), (jnp.array(1.0), r"\(\)")):
+        with pytest.raises(ValueError, match=rf"{name}'s x must be a 1-D array, got shape {shape}"):
+            discrete_gradient(f, x, x, None)
+    with pytest.raises(ValueError, match=f"{name}'s x must be floating point, got dtype int"):
         discrete_gradient(f, jnp.arange(3), jnp.arange(3) + 1.0, None)
     assert discrete_gradient(f, jnp.ones(3), jnp.full(3, 2.0), None).shape == (3,)
 
