@@ -66,10 +66,11 @@ def _is_near(x, x1, delta):
     return jnp.abs(delta) < switch * (1.0 + jnp.abs(0.5 * (x + x1)))
 
 
-def _check_points(name: str, x, x1) -> None:
+def check_points(name: str, x, x1) -> None:
     """A `ValueError` naming `name` unless `x` and `x1` are two points of one space,
-    floating-point vectors of one shape: what every discrete gradient here differences.
-    Checked on shapes and dtypes only, when a function is traced."""
+    floating-point vectors of one shape: what every discrete gradient here differences,
+    and every structure approximation (`nhjax.midpoint_structure`) averages. Checked
+    on shapes and dtypes only, when a function is traced."""
     require_floating_vector(f"{name}'s x", x)
     require_floating_vector(f"{name}'s x1", x1)
     if jnp.shape(x) != jnp.shape(x1):
@@ -95,7 +96,7 @@ def avf(
     """
     if nodes < 1:
         raise ValueError(f"avf needs at least one quadrature node, got nodes={nodes}")
-    _check_points("avf", x, x1)
+    check_points("avf", x, x1)
     xi, weights = np.polynomial.legendre.leggauss(nodes)
     xi = jnp.asarray(0.5 * (xi + 1.0), dtype=x.dtype)
     weights = jnp.asarray(0.5 * weights, dtype=x.dtype)
@@ -217,7 +218,7 @@ def gonzalez(
     `f_x`: $f(x)$, where the caller has it (a method's residual, evaluated at many $x'$
     from one $x$, computes it once a step), else computed here.
     """
-    _check_points("gonzalez", x, x1)
+    check_points("gonzalez", x, x1)
     return gonzalez_correction(f, midpoint_gradient(f, x, x1, args), x, x1, args, f_x=f_x)
 
 
@@ -420,7 +421,7 @@ def itoh_abe(
     divided difference is the two-point Gauss quadrature of $\partial_i f$ along the
     coordinate segment (see the module docstring).
     """
-    _check_points("itoh_abe", x, x1)
+    check_points("itoh_abe", x, x1)
     (n,) = x.shape
     index = jnp.arange(n)
     from_new = index[None, :] < jnp.arange(n + 1)[:, None]

@@ -237,21 +237,43 @@ def test_avf_node_count_is_configurable_and_exact_for_polynomials():
         nh.avf(f, x, x1, None, nodes=0)
 
 
-@pytest.mark.parametrize("discrete_gradient", [nh.avf, nh.gonzalez, nh.itoh_abe], ids=lambda dg: dg.__name__)
-def test_points_of_other_shapes_or_integer_points_are_named(discrete_gradient):
+def _skew(x, args):
+    del args
+    return jnp.outer(x, x**2) - jnp.outer(x**2, x)
+
+
+# Each function of two points: the discrete gradients (of a scalar function) and the
+# structure approximations (of a skew-matrix function), with what each differences or
+# averages and the shape of its value for points of shape (3,).
+TWO_POINT_FUNCTIONS = [
+    pytest.param(function, f, shape, id=function.__name__)
+    for function, f, shape in (
+        (nh.avf, lambda x, args: jnp.sum(x**4), (3,)),
+        (nh.gonzalez, lambda x, args: jnp.sum(x**4), (3,)),
+        (nh.itoh_abe, lambda x, args: jnp.sum(x**4), (3,)),
+        (nh.midpoint_structure, _skew, (3, 3)),
+        (nh.averaged_structure, _skew, (3, 3)),
+    )
+]
+
+
+@pytest.mark.parametrize("function, f, shape", TWO_POINT_FUNCTIONS)
+def test_points_of_other_shapes_or_integer_points_are_named(function, f, shape):
     """Two points of different shapes, a matrix, a scalar or integer coordinates: a
     ValueError naming the function and the problem, where JAX's own errors (broadcasting,
-    unpacking, dtypes) did not say what was wrong."""
-    f = lambda x, args: jnp.sum(x**4)  # noqa: E731
-    name = discrete_gradient.__name__
+    unpacking, dtypes) did not say what was wrong, or (a structure approximation at
+    integer points) none was raised."""
+    name = function.__name__
     with pytest.raises(ValueError, match=rf"{name} takes two points of one shape, got shapes \(3,\) and \(4,\)"):
-        discrete_gradient(f, jnp.ones(3), jnp.ones(4), None)
-    for x, shape in ((jnp.ones((2, 3)), r"\(2, 3\)"), (jnp.array(1.0), r"\(\)")):
-        with pytest.raises(ValueError, match=rf"{name}'s x must be a 1-D array, got shape {shape}"):
-            discrete_gradient(f, x, x, None)
+        function(f, jnp.ones(3), jnp.ones(4), None)
+    for x, x_shape in ((jnp.ones((2, 3)), r"\(2, 3\)"), (jnp.array(1.0), r"\(\)")):
+        with pytest.raises(ValueError, match=rf"{name}'s x must be a 1-D array, got shape {x_shape}"):
+            function(f, x, x, None)
     with pytest.raises(ValueError, match=f"{name}'s x must be floating point, got dtype int"):
-        discrete_gradient(f, jnp.arange(3), jnp.arange(3) + 1.0, None)
-    assert discrete_gradient(f, jnp.ones(3), jnp.full(3, 2.0), None).shape == (3,)
+        function(f, jnp.arange(3), jnp.arange(3) + 1.0, None)
+    with pytest.raises(ValueError, match=f"{name}'s x1 must be floating point, got dtype int"):
+        function(f, jnp.arange(3) + 1.0, jnp.arange(3), None)
+    assert function(f, jnp.ones(3), jnp.full(3, 2.0), None).shape == shape
 
 
 class _Weighted(eqx.Module):

@@ -8,6 +8,7 @@ import optimistix as optx
 
 from .._discrete_gradient import (
     avf,
+    check_points,
     gonzalez,
     gonzalez_values,
     itoh_abe,
@@ -24,11 +25,13 @@ from .base import AbstractMethod, increment_scale, resolution_of
 def midpoint_structure(structure, x, x1, args):
     r"""$\tilde\Pi(x, x') = \Pi(\tfrac{x + x'}{2})$: symmetric, so with a symmetric
     discrete gradient the method is time-symmetric and second order (paper §3.2)."""
+    check_points("midpoint_structure", x, x1)
     return structure(0.5 * (x + x1), args)
 
 
 def averaged_structure(structure, x, x1, args):
     r"""$\tilde\Pi(x, x') = \tfrac12(\Pi(x) + \Pi(x'))$: also symmetric and skew."""
+    check_points("averaged_structure", x, x1)
     return 0.5 * (structure(x, args) + structure(x1, args))
 
 
