@@ -107,37 +107,57 @@ def _implicit_root_jvp(primals, tangents, *, residual, replayed: bool = False):
 FORMED_DATA_DERIVATIVE_LIMIT = 32
 
 
+def _rows_as_output(value: PyTree[Array], rows: Array) -> PyTree[Array]:
+    """`rows`, indexed on their first axis by the entries of `value` flattened, in the
+    structure of `value`: each leaf of shape `leaf.shape + rows.shape[1:]`."""
+    leaves, treedef = jax.tree.flatten(value)
+    pieces, start = [], 0
+    for leaf in leaves:
+        pieces.append(rows[start : start + leaf.size].reshape(leaf.shape + rows.shape[1:]))
+        start += leaf.size
+    return jax.tree.unflatten(treedef, pieces)
+
+
 def _linearised(equations, root, data, data_tangent):
     r"""`equations(root, data)` (a pytree whose first leaf is the residual), its
     derivative in the unknowns at `root`, formed (for each output leaf, the unknowns
     along its last axis), and its derivative along the data's tangent.
 
-    One linearisation serves both derivatives: `equations` is traced (and compiled)
-    once. Where the data have at most `FORMED_DATA_DERIVATIVE_LIMIT` differentiable
-    entries (a state, a step size and a few parameters), the derivative along each of
-    them is formed too, in the same batch of tangents as the unknowns', and the data's
-    tangent enters by a matrix-vector product. It does not depend on the tangent, so
-    in reverse mode the transpose of the step's derivative is that product's, where
-    transposing the linearisation put a second copy of the residual's derivative (for
-    GONZALEZ-R, second derivatives of the QR) into the program: the derivative
-    programs of the sleigh and of Euler's disk are 14% smaller
-    (`benchmarks/gradients.py` records their size, `hlo_lines`, and compile time).
-    With more entries (large systems, or a control signal in the data) the batch
-    would grow by as many tangents as there are entries, and the one tangent along
-    the data is taken instead."""
+    Where the data have at most `FORMED_DATA_DERIVATIVE_LIMIT` differentiable entries
+    (a state, a step size and a few parameters), the whole derivative of the
+    equations' $M$ outputs in the $N$ unknowns and the $D$ data entries is formed, a
+    row at a time: one pullback of the equations, applied to the $M$ unit vectors in
+    one batch, where forming it a column at a time took $N + D$ tangents, and $D \ge
+    N$ where the step's start varies (GONZALEZ-R's data: $\zeta$, $\mathcal{H}(\zeta)$
+    and $p$, $D = N + n + 1$). Timed alone in a compiled loop, a replayed step of the
+    sleigh under reverse mode took 0.4 of the time the columns took, of Euler's disk
+    0.95 (`benchmarks/gradients.py` times whole runs). The data's tangent enters by a
+    matrix-vector product, which does not depend on the tangent, so in reverse mode
+    the transpose of the step's derivative is that product's: transposing a
+    linearisation would put a second copy of the residual's derivative (for
+    GONZALEZ-R, second derivatives of the QR) into the program.
+
+    With more entries (large systems, or a control signal in the data) the rows
+    would be as long, and stored at every step of a run's derivative: the derivative
+    in the unknowns is formed from one linearisation, a column at a time, and the
+    one tangent along the data is taken from it."""
     varying, fixed, tangent_in = split_by_tangents(data, data_tangent)
-    value, linear = jax.linearize(lambda u, v: equations(u, eqx.combine(v, fixed)), root, varying)
-    n = root.shape[0]
+
+    def on_varying(u, v):
+        return equations(u, eqx.combine(v, fixed))
+
     if sum(leaf.size for leaf in jax.tree.leaves(varying)) <= FORMED_DATA_DERIVATIVE_LIMIT:
-        flat_varying, unravel = jax.flatten_util.ravel_pytree(varying)
-        unit = jnp.eye(n + flat_varying.size, dtype=root.dtype)
-        along_all = jax.vmap(
-            lambda e: linear(e[:n], unravel(e[n:].astype(flat_varying.dtype))), out_axes=-1
-        )(unit)
+        value, pullback = jax.vjp(on_varying, root, varying)
+        flat_value, unravel_value = jax.flatten_util.ravel_pytree(value)
+        along_unknowns, along_varying = jax.vmap(lambda e: pullback(unravel_value(e)))(
+            jnp.eye(flat_value.size, dtype=flat_value.dtype)
+        )
+        along_varying = jax.vmap(lambda tree: jax.flatten_util.ravel_pytree(tree)[0])(along_varying)
         flat_tangent = jax.flatten_util.ravel_pytree(tangent_in)[0]
-        along_unknowns = jax.tree.map(lambda rows: rows[..., :n], along_all)
-        along_data = jax.tree.map(lambda rows: rows[..., n:] @ flat_tangent.astype(rows.dtype), along_all)
-        return value, along_unknowns, along_data
+        along_data = along_varying @ flat_tangent.astype(along_varying.dtype)
+        return value, _rows_as_output(value, along_unknowns), _rows_as_output(value, along_data)
+    value, linear = jax.linearize(on_varying, root, varying)
+    n = root.shape[0]
     no_tangent = jax.tree.map(jnp.zeros_like, varying)
     unit = jnp.eye(n, dtype=root.dtype)
     along_unknowns = jax.vmap(lambda e: linear(e, no_tangent), out_axes=-1)(unit)
