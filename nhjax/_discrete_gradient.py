@@ -142,12 +142,13 @@ def _third_directional_derivative_jvp(primals, tangents):
     in what has a tangent (the point, the direction, the arguments and the arrays of
     $f$), by one reverse pass, contracted with the tangents.
 
-    The Jacobians that derivatives of a step form push a batch of tangents through the
-    residual (`nhjax._solver.base._linearised`); forward mode through the four values
-    would hold arrays of the four points for every tangent, which takes XLA:CPU's
+    The Jacobians that derivatives of a step form pull a batch of cotangents back
+    through the residual (`nhjax._solver.base._linearised`), or push a batch of
+    tangents through it; autodiff through the four values would hold arrays of the
+    four points for every one of them, which takes XLA:CPU's
     step programs off sequential execution (`nhjax._linalg.SEQUENTIAL_BYTES`) even
     though this branch runs only for nearly equal points. The gradient depends on the
-    primals alone, so a batch of tangents forms it once."""
+    primals alone, so a batch forms it once."""
     varying, fixed, given = split_by_tangents(primals, tangents)
     value, pullback = jax.vjp(lambda v: _third_difference(*eqx.combine(v, fixed)), varying)
     (gradient,) = pullback(jnp.ones_like(value))
