@@ -107,17 +107,6 @@ def _implicit_root_jvp(primals, tangents, *, residual, replayed: bool = False):
 FORMED_DATA_DERIVATIVE_LIMIT = 32
 
 
-def _rows_as_output(value: PyTree[Array], rows: Array) -> PyTree[Array]:
-    """`rows`, indexed on their first axis by the entries of `value` flattened, in the
-    structure of `value`: each leaf of shape `leaf.shape + rows.shape[1:]`."""
-    leaves, treedef = jax.tree.flatten(value)
-    pieces, start = [], 0
-    for leaf in leaves:
-        pieces.append(rows[start : start + leaf.size].reshape(leaf.shape + rows.shape[1:]))
-        start += leaf.size
-    return jax.tree.unflatten(treedef, pieces)
-
-
 def _linearised(equations, root, data, data_tangent):
     r"""`equations(root, data)` (a pytree whose first leaf is the residual), its
     derivative in the unknowns at `root`, formed (for each output leaf, the unknowns
@@ -129,9 +118,8 @@ def _linearised(equations, root, data, data_tangent):
     row at a time: one pullback of the equations, applied to the $M$ unit vectors in
     one batch, where forming it a column at a time took $N + D$ tangents, and $D \ge
     N$ where the step's start varies (GONZALEZ-R's data: $\zeta$, $\mathcal{H}(\zeta)$
-    and $p$, $D = N + n + 1$). Timed alone in a compiled loop, a replayed step of the
-    sleigh under reverse mode took 0.4 of the time the columns took, of Euler's disk
-    0.95 (`benchmarks/gradients.py` times whole runs). The data's tangent enters by a
+    and $p$, $D = N + n + 1$; `benchmarks/gradients.py --parts` times a step's
+    derivative, `step_derivative`, and whole runs). The data's tangent enters by a
     matrix-vector product, which does not depend on the tangent, so in reverse mode
     the transpose of the step's derivative is that product's: transposing a
     linearisation would put a second copy of the residual's derivative (for
@@ -155,7 +143,9 @@ def _linearised(equations, root, data, data_tangent):
         along_varying = jax.vmap(lambda tree: jax.flatten_util.ravel_pytree(tree)[0])(along_varying)
         flat_tangent = jax.flatten_util.ravel_pytree(tangent_in)[0]
         along_data = along_varying @ flat_tangent.astype(along_varying.dtype)
-        return value, _rows_as_output(value, along_unknowns), _rows_as_output(value, along_data)
+        # Each output leaf with the unknowns along its last axis.
+        along_unknowns = jax.vmap(unravel_value, in_axes=1, out_axes=-1)(along_unknowns)
+        return value, along_unknowns, unravel_value(along_data)
     value, linear = jax.linearize(on_varying, root, varying)
     n = root.shape[0]
     no_tangent = jax.tree.map(jnp.zeros_like, varying)
