@@ -135,12 +135,13 @@ def _linearised(equations, root, data, data_tangent):
         return equations(u, eqx.combine(v, fixed))
 
     if sum(leaf.size for leaf in jax.tree.leaves(varying)) <= FORMED_DATA_DERIVATIVE_LIMIT:
-        value, pullback = jax.vjp(on_varying, root, varying)
+        # Pulled back to the data as one flat vector, so that each row comes out flat.
+        flat_varying, unravel_varying = jax.flatten_util.ravel_pytree(varying)
+        value, pullback = jax.vjp(lambda u, w: on_varying(u, unravel_varying(w)), root, flat_varying)
         flat_value, unravel_value = jax.flatten_util.ravel_pytree(value)
         along_unknowns, along_varying = jax.vmap(lambda e: pullback(unravel_value(e)))(
             jnp.eye(flat_value.size, dtype=flat_value.dtype)
         )
-        along_varying = jax.vmap(lambda tree: jax.flatten_util.ravel_pytree(tree)[0])(along_varying)
         flat_tangent = jax.flatten_util.ravel_pytree(tangent_in)[0]
         along_data = along_varying @ flat_tangent.astype(along_varying.dtype)
         # Each output leaf with the unknowns along its last axis.
