@@ -3,6 +3,7 @@ JAX calls, the machine's description, and writing the results."""
 
 import argparse
 import json
+import os
 import pathlib
 import platform
 import statistics
@@ -88,7 +89,15 @@ def run_and_time_interleaved(functions: dict, *arguments, repeats: int) -> tuple
 
 
 def machine() -> dict:
-    return dict(processor=platform.processor(), cpus=jax.local_device_count(), backend=jax.default_backend())
+    """The processor, JAX's devices and backend, and `XLA_FLAGS` as the process found
+    it: XLA's flags change both run and compile times (the README's performance
+    paragraphs), so a result names those it was measured under."""
+    return dict(
+        processor=platform.processor(),
+        cpus=jax.local_device_count(),
+        backend=jax.default_backend(),
+        xla_flags=os.environ.get("XLA_FLAGS", ""),
+    )
 
 
 def write(results: dict, path: str) -> None:
