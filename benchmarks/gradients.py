@@ -29,7 +29,9 @@ With `--parts`, on those systems also where the reverse-mode derivative's time g
 derivatives, and a step's residual, Jacobian and linearisation), µs per step.
 
 Run: python benchmarks/gradients.py [--steps N ...] [--repeats R] [--systems NAME ...] [--parts]
-Medians over repeats; results go to benchmarks/results/gradients.json.
+Medians over repeats; results go to benchmarks/results/gradients.json, each system's
+with the `XLA_FLAGS` it ran under; those under the `nhjax` command's whole-loop flag
+(the README's performance paragraphs) to results/gradients_whole_loops.json (`--out`).
 """
 
 import argparse
