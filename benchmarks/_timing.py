@@ -89,7 +89,7 @@ def run_and_time_interleaved(functions: dict, *arguments, repeats: int) -> tuple
 
 
 def machine() -> dict:
-    """The processor, JAX's devices and backend, and `XLA_FLAGS` as the process found
+    """The processor, JAX's devices and backend, and `XLA_FLAGS` as the process has
     it: XLA's flags change both run and compile times (the README's performance
     paragraphs), so a result names those it was measured under."""
     return dict(
