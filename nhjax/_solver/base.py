@@ -789,10 +789,12 @@ class AbstractMethod(diffrax.AbstractSolver):
         extracts that element's whole computation in the body into a module of its
         own to check it, here the chord iteration with its matrix, every run; a
         condition on two elements ends the search at once. Euler's disk
-        (`nhjax.examples.rolling_disk_3d`, GONZALEZ-R, 2 000 steps) compiled in 11.3 s
-        against 14.6 s before, the same program otherwise and the same results to the
-        bit (one process each, in turns, on a loaded 2-core machine; `python
-        benchmarks/scaling.py --parts disk` measures it)."""
+        (`nhjax.examples.rolling_disk_3d`, GONZALEZ-R, 2 000 steps) compiled in 5.1 s
+        against 6.7 s from its mass matrix and in 5.2 s against 6.0 s from its
+        Lagrangian (medians of three, one process each, in turns, on a 2-core
+        machine), and at the test suite's settings in 5.0 s against 8.7 s, the same
+        program otherwise and the same results to the bit (`python
+        benchmarks/scaling.py --parts disk` times its compilation)."""
         if memory is None:
             return *self._fresh_chord_root(root_finder, (guess, data)), None
         key = self.chord_key(data)
