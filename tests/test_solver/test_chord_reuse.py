@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.extend.core import Var
 
 import nhjax as nh
 from nhjax._solver.base import ChordMemory, KEPT_STEPS, no_gradient
@@ -203,3 +204,39 @@ def test_a_failing_kept_matrix_is_replaced_by_a_fresh_one():
     # Not for another step size.
     other = ChordMemory(jacobian, inverse, key * 1.01, fresh.steps, fresh.steps, one, one)
     assert int(kept._chord_solve(root_finder, guess, data, other)[3].formed) == 2
+
+
+def _while_loop_condition_reads(jaxpr) -> list[int]:
+    """For each while loop of `jaxpr` (its sub-jaxprs too), how many elements of its
+    carry its condition reads."""
+    reads = []
+    for equation in jaxpr.eqns:
+        if equation.primitive.name == "while":
+            condition = equation.params["cond_jaxpr"].jaxpr
+            carry = condition.invars[equation.params["cond_nconsts"] :]
+            operands = [*(v for e in condition.eqns for v in e.invars), *condition.outvars]
+            read = {v for v in operands if isinstance(v, Var)}
+            reads.append(sum(v in read for v in carry))
+        for value in equation.params.values():
+            for inner in value if isinstance(value, (tuple, list)) else [value]:
+                inner = getattr(inner, "jaxpr", inner)
+                if hasattr(inner, "eqns"):
+                    reads += _while_loop_condition_reads(inner)
+    return reads
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_every_while_loop_of_a_run_decides_on_two_carry_elements_or_more(case):
+    """The loops of a run with a kept matrix (the steps of a save, the attempts with a
+    kept and a fresh matrix, the chord iteration) each decide on at least two elements
+    of their carry: XLA's search for an induction variable extracts, for a condition on
+    one element, that element's whole computation in the loop's body at each run of its
+    loop passes, which for the attempt loop (the chord iteration with its matrix) made
+    a fifth to a third of the compile time of Euler's disk
+    (`nhjax.AbstractMethod._chord_solve`). Loops over a fixed count are scans here, not
+    while loops."""
+    label, _, kept, h, steps = CASES[case]
+    example, y0 = STARTS[label]
+    jaxpr = jax.make_jaxpr(lambda y: nh.integrate(example.canonical, kept, y, h, steps, args=example.args))(y0)
+    reads = _while_loop_condition_reads(jaxpr.jaxpr)
+    assert len(reads) == 3 and min(reads) >= 2, reads
