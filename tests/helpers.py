@@ -51,6 +51,18 @@ def canonical_starts():
     return starts
 
 
+def equations(jaxpr):
+    """Every equation of `jaxpr` and of the jaxprs inside it (loop bodies and
+    conditions, branches, calls), depth first."""
+    for equation in jaxpr.eqns:
+        yield equation
+        for value in equation.params.values():
+            for inner in value if isinstance(value, (tuple, list)) else [value]:
+                inner = getattr(inner, "jaxpr", inner)
+                if hasattr(inner, "eqns"):
+                    yield from equations(inner)
+
+
 def relative_energy_error(solution) -> float:
     return float(jnp.max(jnp.abs(solution.energy / solution.energy[0] - 1)))
 

@@ -12,7 +12,7 @@ from jax.extend.core import Var
 import nhjax as nh
 from nhjax._solver.base import ChordMemory, KEPT_STEPS, no_gradient
 
-from ..helpers import canonical_starts, relative_energy_error
+from ..helpers import canonical_starts, equations, relative_energy_error
 
 
 STARTS = canonical_starts()
@@ -210,18 +210,13 @@ def _while_loop_condition_reads(jaxpr) -> list[int]:
     """For each while loop of `jaxpr` (its sub-jaxprs too), how many elements of its
     carry its condition reads."""
     reads = []
-    for equation in jaxpr.eqns:
+    for equation in equations(jaxpr):
         if equation.primitive.name == "while":
             condition = equation.params["cond_jaxpr"].jaxpr
             carry = condition.invars[equation.params["cond_nconsts"] :]
             operands = [*(v for e in condition.eqns for v in e.invars), *condition.outvars]
             read = {v for v in operands if isinstance(v, Var)}
             reads.append(sum(v in read for v in carry))
-        for value in equation.params.values():
-            for inner in value if isinstance(value, (tuple, list)) else [value]:
-                inner = getattr(inner, "jaxpr", inner)
-                if hasattr(inner, "eqns"):
-                    reads += _while_loop_condition_reads(inner)
     return reads
 
 

@@ -15,7 +15,7 @@ import pytest
 import nhjax as nh
 from nhjax._solver.base import HISTORY
 
-from ..helpers import canonical_starts, final_states, fitted_order, relative_energy_error
+from ..helpers import canonical_starts, equations, final_states, fitted_order, relative_energy_error
 
 
 sys.path.insert(0, str(pathlib.Path(__file__).parents[2] / "benchmarks"))
@@ -435,15 +435,10 @@ def test_the_metric_shortcuts_give_the_general_method(metric):
 
 def _calls(jaxpr, name: str) -> int:
     """How many calls of the jitted function `name` a jaxpr makes, in its sub-jaxprs too."""
-    total = 0
-    for equation in jaxpr.eqns:
-        total += equation.primitive.name in ("pjit", "jit") and equation.params.get("name") == name
-        for value in equation.params.values():
-            for inner in value if isinstance(value, (tuple, list)) else [value]:
-                inner = getattr(inner, "jaxpr", inner)
-                if hasattr(inner, "eqns"):
-                    total += _calls(inner, name)
-    return total
+    return sum(
+        equation.primitive.name in ("pjit", "jit") and equation.params.get("name") == name
+        for equation in equations(jaxpr)
+    )
 
 
 def test_a_step_starts_from_one_factorisation():
