@@ -28,7 +28,15 @@ With `--parts`, on those systems also where the reverse-mode derivative's time g
 (`_profile.derivative_parts`: the recording, the replay with and without
 derivatives, and a step's residual, Jacobian and linearisation), µs per step.
 
+With `--xla-settings`, on each system the reverse-mode derivative (with its time ratio to
+the forward run and its compile times) under each of the XLA settings of
+`XLA_SETTINGS`, each in its own process, the settings taken in turn `--rounds` times:
+XLA's defaults, the `nhjax` command's whole-loop flag, and that flag with XLA:CPU's
+YNNPACK fusions turned off (the README's performance paragraphs say why the last one
+differs); results to results/gradients_xla_settings.json.
+
 Run: python benchmarks/gradients.py [--steps N ...] [--repeats R] [--systems NAME ...] [--parts]
+     python benchmarks/gradients.py --xla-settings --systems disk sleigh --steps 2000 [--rounds R]
 Medians over repeats; results go to benchmarks/results/gradients.json, each system's
 with the `XLA_FLAGS` it ran under; those under the `nhjax` command's whole-loop flag
 (the README's performance paragraphs) to results/gradients_whole_loops.json (`--out`).
@@ -38,8 +46,12 @@ import argparse
 import json
 import pathlib
 import resource
+import os
+import statistics
 import subprocess
 import sys
+
+from _nhjax_command import WHOLE_LOOPS
 
 
 _MODES = (
@@ -81,6 +93,14 @@ def _system(name: str):
 
 
 _SYSTEMS = ("gearbox", "sleigh", "disk", "disk-lagrangian", "robot")
+# `--xla-settings`: XLA_FLAGS by name. XLA:CPU compiles a loop into one function only
+# where no operation of its body goes to a library: the whole-loop flag raises the size
+# limit, and the empty YNNPACK fusion type keeps matrix products out of YNNPACK.
+XLA_SETTINGS = {
+    "defaults": "",
+    "whole loops": WHOLE_LOOPS,
+    "whole loops, no YNNPACK fusions": f"{WHOLE_LOOPS} --xla_cpu_experimental_ynn_fusion_type=",
+}
 # The modes on the systems beside the gearbox: nhjax's default routes.
 _DEFAULT_MODES = ("forward", "reverse", "forward-mode")
 
@@ -155,12 +175,41 @@ def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
     return result
 
 
-def _in_subprocess(system: str, mode: str, steps: int, repeats: int) -> dict:
+def _in_subprocess(system: str, mode: str, steps: int, repeats: int, xla_flags: str | None = None) -> dict:
+    """A measurement in a process of its own, under `xla_flags` where given (else this
+    process's `XLA_FLAGS`)."""
     command = [
         sys.executable, __file__, "--child", mode, "--systems", system, "--steps", str(steps), "--repeats", str(repeats)
     ]
-    output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    environment = os.environ if xla_flags is None else {**os.environ, "XLA_FLAGS": xla_flags}
+    output = subprocess.run(command, check=True, capture_output=True, text=True, env=environment).stdout
     return json.loads(output.strip().splitlines()[-1])
+
+
+def compare_xla_settings(systems, steps: int, repeats: int, rounds: int) -> dict:
+    """Per system, the reverse-mode derivative under each of `XLA_SETTINGS`, the
+    settings in turn `rounds` times so that the machine's drift falls on all alike:
+    every run, and the medians of its time, its ratio to the forward run and its
+    compile times."""
+    compared = {}
+    for system in systems:
+        runs = {name: [] for name in XLA_SETTINGS}
+        for _ in range(rounds):
+            for name, flags in XLA_SETTINGS.items():
+                runs[name].append(_in_subprocess(system, "reverse", steps, repeats, xla_flags=flags))
+                print(f"{system}, {steps} steps, reverse, {name}: {runs[name][-1]}", flush=True)
+        compared[system] = {
+            name: dict(
+                xla_flags=XLA_SETTINGS[name],
+                runs=measured,
+                **{
+                    f"median_{key}": statistics.median(run[key] for run in measured)
+                    for key in ("seconds", "time_ratio_to_forward", "trace_and_lower_s", "compile_s")
+                },
+            )
+            for name, measured in runs.items()
+        }
+    return dict(steps=steps, repeats=repeats, rounds=rounds, systems=compared)
 
 
 def main():
@@ -170,8 +219,18 @@ def main():
     parser.add_argument("--systems", nargs="+", choices=_SYSTEMS, default=["gearbox"])
     parser.add_argument("--child", choices=_MODES + ("parts",))
     parser.add_argument("--parts", action="store_true", help="also where the derivative's time goes, per system")
-    parser.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gradients.json"))
+    parser.add_argument("--xla-settings", action="store_true", help="reverse mode under each of XLA_SETTINGS")
+    parser.add_argument("--rounds", type=int, default=2, help="with --xla-settings: turns through the settings")
+    parser.add_argument("--out", help="default: results/gradients.json (results/gradients_xla_settings.json)")
     options = parser.parse_args()
+    results_directory = pathlib.Path(__file__).parent / "results"
+    if options.xla_settings:
+        from _timing import write
+
+        compared = compare_xla_settings(options.systems, options.steps[0], options.repeats, options.rounds)
+        write(compared, options.out or str(results_directory / "gradients_xla_settings.json"))
+        return
+    options.out = options.out or str(results_directory / "gradients.json")
     if options.child == "parts":
         print(json.dumps(parts(options.systems[0], options.steps[0], options.repeats)))
         return
