@@ -44,9 +44,9 @@ with the `XLA_FLAGS` it ran under; those under the `nhjax` command's whole-loop 
 
 import argparse
 import json
+import os
 import pathlib
 import resource
-import os
 import statistics
 import subprocess
 import sys
