@@ -66,6 +66,35 @@ def step_parts(system, method, y0, h, iterations: float, args=None, repeats: int
     return parts
 
 
+def _derivative_programs(system, method, y0, dt, steps: int, loss_of, args=None):
+    """The whole-run programs that `derivative_parts` times and `derivative_program_sizes`
+    measures, each a jitted function of the start: `{name: function}`, and the recorded
+    roots and whether each step succeeded."""
+    import nhjax as nh
+    from nhjax import _replay
+
+    dt = jnp.asarray(dt)
+    t0 = jnp.zeros_like(dt)
+
+    def forward(y):
+        return loss_of(nh.integrate(system, method, y, dt, steps, args=args, save_every=steps).ys)
+
+    def record(y):
+        return _replay._record(system, method, y, dt, t0, args, steps, steps)[:2]
+
+    # A program of its own, so that the compilation of `functions["record"]` is not
+    # found done already.
+    roots, succeeded = jax.jit(lambda y: record(y))(y0)
+
+    def replay(y):
+        ys, _ = _replay._replayed_saves(system, method, y, dt, t0, args, roots, succeeded, steps, save_every=steps)
+        return loss_of(ys)
+
+    functions = dict(forward=jax.jit(forward), record=jax.jit(record), replay=jax.jit(replay),
+                     replay_reverse=jax.jit(jax.grad(replay)))
+    return functions, roots
+
+
 def derivative_parts(system, method, y0, dt, steps: int, repeats: int, loss_of, args=None) -> dict:
     """Where the time of a run's reverse-mode derivative goes (`nhjax._replay`), µs per
     step, timed in turns in one process: the forward run (`forward`), the recording
@@ -79,31 +108,13 @@ def derivative_parts(system, method, y0, dt, steps: int, repeats: int, loss_of, 
     every step, its Jacobian in the unknowns and along the step's data,
     `nhjax._solver.base._linearised`). `loss_of` maps the saved states to the scalar
     that is differentiated."""
-    import nhjax as nh
-    from nhjax import _replay
-
     from _timing import run_and_time_interleaved
 
-    dt = jnp.asarray(dt)
-    t0 = jnp.zeros_like(dt)
-
-    def forward(y):
-        return loss_of(nh.integrate(system, method, y, dt, steps, args=args, save_every=steps).ys)
-
-    def record(y):
-        return _replay._record(system, method, y, dt, t0, args, steps, steps)[:2]
-
-    roots, succeeded = jax.jit(record)(y0)
-
-    def replay(y):
-        ys, _ = _replay._replayed_saves(system, method, y, dt, t0, args, roots, succeeded, steps, save_every=steps)
-        return loss_of(ys)
-
-    functions = dict(forward=jax.jit(forward), record=jax.jit(record), replay=jax.jit(replay),
-                     replay_reverse=jax.jit(jax.grad(replay)))
+    functions, roots = _derivative_programs(system, method, y0, dt, steps, loss_of, args)
     _, times = run_and_time_interleaved(functions, y0, repeats=repeats)
     parts = {name: seconds / steps * 1e6 for name, seconds in times.items()}
 
+    t0 = jnp.zeros_like(jnp.asarray(dt))
     carry = method.initial_carry(system, y0, args)
     _, data = method.setup(system, t0, dt, y0, args, carry)
     ones = jax.tree.map(jnp.ones_like, y0)
@@ -117,6 +128,25 @@ def derivative_parts(system, method, y0, dt, steps: int, repeats: int, loss_of, 
         step_derivative=per_call_us(step_derivative, roots[0]),
     )
     return parts
+
+
+def derivative_program_sizes(system, method, y0, dt, steps: int, loss_of, args=None) -> dict:
+    """Where the compilation of a run's reverse-mode derivative goes: for each program
+    of `derivative_parts` (`forward`, `record`, `replay`, `replay_reverse`; the
+    derivative compiles the recording and the reversed replay), its size
+    (`hlo_counts`) and the seconds XLA took to compile it (`compile_s`, after its
+    tracing and lowering); for `replay_reverse`, also its instructions by where they
+    come from (`derivative_contexts`)."""
+    functions, _ = _derivative_programs(system, method, y0, dt, steps, loss_of, args)
+    sizes = {}
+    for name, function in functions.items():
+        lowered = function.lower(y0)
+        start = time.perf_counter()
+        compiled = lowered.compile()
+        sizes[name] = dict(compile_s=time.perf_counter() - start, **hlo_counts(compiled))
+        if name == "replay_reverse":
+            sizes[name]["contexts"] = derivative_contexts(compiled)
+    return sizes
 
 
 # Operations that do no work at run time: they name, pass on or reinterpret buffers.
@@ -146,6 +176,39 @@ def hlo_counts(compiled) -> dict:
         if computation not in fused and instruction.group(1) not in _FREE_OPERATIONS:
             counts["operations"] += 1
     return counts
+
+
+def derivative_contexts(compiled) -> dict:
+    """The instructions of a compiled reverse-mode program (all of them, fused ones
+    included, as `hlo_counts` counts `hlo_instructions`) by where the transformations
+    that JAX records in each one's `op_name` say it comes from:
+    `vmapped_transposes` (above all the rows of each step's Jacobian,
+    `nhjax._solver.base._linearised`'s batched pullback, but also a step's own
+    gradients taken at several points at once, such as the velocities of
+    `nhjax._reduced.momentum_by_projection`); `transposed`, the backward sweep's other
+    transposes; `rematerialised`, what the backward sweep recomputes
+    under `jax.checkpoint` (the replayed step and its linearisation); `forward`, the
+    rest (the forward sweeps and what surrounds the loops); and apart, `no_work`, the
+    instructions that only name or pass on buffers (most of them the parameters of
+    fused computations, which carry no `op_name`)."""
+    contexts = dict(vmapped_transposes=0, transposed=0, rematerialised=0, forward=0, no_work=0)
+    for line in compiled.as_text().splitlines():
+        instruction = re.match(r"^\s*(?:ROOT )?%?[\w.\-]+ = \S+ ([\w\-]+)\(", line)
+        if instruction is None:
+            continue
+        name = re.search(r'op_name="([^"]*)"', line)
+        name = name.group(1) if name else ""
+        if instruction.group(1) in _FREE_OPERATIONS:
+            contexts["no_work"] += 1
+        elif "vmap(transpose(" in name:
+            contexts["vmapped_transposes"] += 1
+        elif "rematted_computation" in name:
+            contexts["rematerialised"] += 1
+        elif "transpose(" in name:
+            contexts["transposed"] += 1
+        else:
+            contexts["forward"] += 1
+    return contexts
 
 
 def gonzalez_r_pieces(system, method, y0, h, args=None, unknowns=None) -> tuple[dict, dict]:

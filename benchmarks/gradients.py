@@ -26,7 +26,10 @@ and, of the same lowered program after the memory figures, with its loop emitter
 
 With `--parts`, on those systems also where the reverse-mode derivative's time goes
 (`_profile.derivative_parts`: the recording, the replay with and without
-derivatives, and a step's residual, Jacobian and linearisation), µs per step.
+derivatives, and a step's residual, Jacobian and linearisation), µs per step, and
+where its compilation goes (`_profile.derivative_program_sizes`: the size and XLA's
+compile time of each of those programs, and the reversed replay's instructions by
+where they come from).
 
 With `--xla-settings`, on each system the reverse-mode derivative (with its time ratio to
 the forward run and its compile times) under each of the XLA settings of
@@ -115,15 +118,19 @@ def final_state_loss(states):
 
 def parts(system_name: str, steps: int, repeats: int) -> dict:
     """In this process: where the reverse-mode derivative's time goes
-    (`_profile.derivative_parts`)."""
+    (`us_per_step`, `_profile.derivative_parts`), and its compilation
+    (`program_sizes`, `_profile.derivative_program_sizes`)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import nhjax as nh
-    from _profile import derivative_parts
+    from _profile import derivative_parts, derivative_program_sizes
 
     system, y0, dt, args = _system(system_name)
-    return derivative_parts(system, nh.GonzalezR(), y0, dt, steps, repeats, final_state_loss, args=args)
+    return dict(
+        us_per_step=derivative_parts(system, nh.GonzalezR(), y0, dt, steps, repeats, final_state_loss, args=args),
+        program_sizes=derivative_program_sizes(system, nh.GonzalezR(), y0, dt, steps, final_state_loss, args=args),
+    )
 
 
 def measure(system_name: str, mode: str, steps: int, repeats: int) -> dict:
@@ -257,8 +264,9 @@ def main():
                 results["runs"][str(steps)] = run
             else:
                 if options.parts:
-                    run["parts_us_per_step"] = _in_subprocess(system, "parts", steps, options.repeats)
-                    print(f"{system}, {steps} steps, parts: {run['parts_us_per_step']}", flush=True)
+                    measured = _in_subprocess(system, "parts", steps, options.repeats)
+                    run["parts_us_per_step"], run["parts_program_sizes"] = measured["us_per_step"], measured["program_sizes"]
+                    print(f"{system}, {steps} steps, parts: {measured}", flush=True)
                 entry = results["systems"].setdefault(system, {})
                 entry[str(steps)] = run
                 entry["jax"], entry["machine"] = jax.__version__, machine()

@@ -61,6 +61,32 @@ def test_hlo_counts_count_operations_outside_fusions():
     assert with_products["operations"] >= 3
 
 
+def test_derivative_contexts_attribute_every_instruction_of_a_reverse_program():
+    """A reverse-mode program of the replay's shape, a checkpointed scan whose step
+    forms its Jacobian's rows by a vmapped pullback: every instruction is counted once,
+    each context holds some, and without reverse mode around the scan none is in a
+    backward sweep."""
+
+    def step(x, _):
+        value, pullback = jax.vjp(lambda v: jnp.sin(v) * jnp.cos(v[::-1]), x)
+        rows = jax.vmap(pullback)(jnp.eye(x.shape[0]))[0]
+        return value + jnp.tanh(rows @ x), None
+
+    def loss(x):
+        return jnp.sum(jax.lax.scan(jax.checkpoint(step), x, None, length=5)[0] ** 2)
+
+    x = jnp.linspace(0.1, 0.9, 6)
+    compiled = jax.jit(jax.grad(loss)).lower(x).compile()
+    contexts = _profile.derivative_contexts(compiled)
+    assert sum(contexts.values()) == _profile.hlo_counts(compiled)["hlo_instructions"]
+    assert all(count > 0 for count in contexts.values()), contexts
+    # Without reverse mode around it the scan has no backward sweep: only the step's
+    # own rows.
+    forward_only = _profile.derivative_contexts(jax.jit(loss).lower(x).compile())
+    assert forward_only["transposed"] == forward_only["rematerialised"] == 0
+    assert forward_only["vmapped_transposes"] > 0 and forward_only["forward"] > 0 and forward_only["no_work"] > 0
+
+
 def _profiled_systems():
     sys.path.insert(0, str(pathlib.Path(__file__).parents[1] / "benchmarks"))
     import scaling
