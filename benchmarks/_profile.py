@@ -153,6 +153,20 @@ def derivative_program_sizes(system, method, y0, dt, steps: int, loss_of, args=N
 _FREE_OPERATIONS = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast"}
 
 
+def _instructions(compiled):
+    """Each instruction of a compiled program's optimised HLO, fused ones included:
+    `(its computation, its opcode, its line)`."""
+    computation = None
+    for line in compiled.as_text().splitlines():
+        header = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
+        if header:
+            computation = header.group(1)
+            continue
+        instruction = re.match(r"^\s*(?:ROOT )?%?[\w.\-]+ = \S+ ([\w\-]+)\(", line)
+        if instruction is not None:
+            yield computation, instruction.group(1), line
+
+
 def hlo_counts(compiled) -> dict:
     """The size of a compiled program (`jax.jit(f).lower(x).compile()`):
     `hlo_instructions`, every instruction of its optimised HLO, fused ones included
@@ -160,20 +174,11 @@ def hlo_counts(compiled) -> dict:
     ones that do no work (parameters, constants, tuples and their elements, bitcasts):
     each of these is one kernel or library call when the program runs, and on
     XLA:CPU the cost of a small step is about their number."""
-    text = compiled.as_text()
-    fused = set(re.findall(r"\bfusion\(.*?calls=%?([\w.\-]+)", text))
+    fused = set(re.findall(r"\bfusion\(.*?calls=%?([\w.\-]+)", compiled.as_text()))
     counts = dict(hlo_instructions=0, operations=0)
-    computation = None
-    for line in text.splitlines():
-        header = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
-        if header:
-            computation = header.group(1)
-            continue
-        instruction = re.match(r"^\s*(?:ROOT )?%?[\w.\-]+ = \S+ ([\w\-]+)\(", line)
-        if instruction is None:
-            continue
+    for computation, opcode, _ in _instructions(compiled):
         counts["hlo_instructions"] += 1
-        if computation not in fused and instruction.group(1) not in _FREE_OPERATIONS:
+        if computation not in fused and opcode not in _FREE_OPERATIONS:
             counts["operations"] += 1
     return counts
 
@@ -192,13 +197,10 @@ def derivative_contexts(compiled) -> dict:
     instructions that only name or pass on buffers (most of them the parameters of
     fused computations, which carry no `op_name`)."""
     contexts = dict(vmapped_transposes=0, transposed=0, rematerialised=0, forward=0, no_work=0)
-    for line in compiled.as_text().splitlines():
-        instruction = re.match(r"^\s*(?:ROOT )?%?[\w.\-]+ = \S+ ([\w\-]+)\(", line)
-        if instruction is None:
-            continue
+    for _, opcode, line in _instructions(compiled):
         name = re.search(r'op_name="([^"]*)"', line)
         name = name.group(1) if name else ""
-        if instruction.group(1) in _FREE_OPERATIONS:
+        if opcode in _FREE_OPERATIONS:
             contexts["no_work"] += 1
         elif "vmap(transpose(" in name:
             contexts["vmapped_transposes"] += 1
