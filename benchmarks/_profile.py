@@ -169,18 +169,49 @@ def _instructions(compiled):
 
 def hlo_counts(compiled) -> dict:
     """The size of a compiled program (`jax.jit(f).lower(x).compile()`):
-    `hlo_instructions`, every instruction of its optimised HLO, fused ones included
-    (what XLA compiles), and `operations`, those outside fused computations, less the
-    ones that do no work (parameters, constants, tuples and their elements, bitcasts):
-    each of these is one kernel or library call when the program runs, and on
-    XLA:CPU the cost of a small step is about their number."""
-    fused = set(re.findall(r"\bfusion\(.*?calls=%?([\w.\-]+)", compiled.as_text()))
+    `hlo_instructions`, every instruction of its optimised HLO, fused ones included;
+    `operations`, those outside fused computations, less the ones that do no work
+    (parameters, constants, tuples and their elements, bitcasts): each of these is one
+    kernel or library call when the program runs, and on XLA:CPU the cost of a small
+    step is about their number; and `distinct_fusions`, the fused computations that
+    differ in more than their names (`_fused_kernels`).
+
+    XLA:CPU emits one kernel for fused computations that are the same but for their
+    names, so a computation repeated in a program (a function evaluated in two loops)
+    adds instructions but not kernels to compile, and `distinct_fusions` follows the
+    compile time where `hlo_instructions` overstates it. Euler's disk's GONZALEZ-R run
+    (`nhjax.examples.rolling_disk_3d`, 2 000 steps) with its chord matrix formed in
+    the iteration's own loop, one copy of the residual where the program holds two
+    (a trial, not kept): 16 % fewer instructions, 5 % fewer distinct fusions (378 to
+    358), 412 to 394 kernels through LLVM, and XLA's compilation 3.44 s to 3.25 s."""
+    text = compiled.as_text()
+    fused = set(re.findall(r"\bfusion\(.*?calls=%?([\w.\-]+)", text))
     counts = dict(hlo_instructions=0, operations=0)
     for computation, opcode, _ in _instructions(compiled):
         counts["hlo_instructions"] += 1
         if computation not in fused and opcode not in _FREE_OPERATIONS:
             counts["operations"] += 1
+    counts["distinct_fusions"] = len(set(_fused_kernels(text, fused)))
     return counts
+
+
+def _fused_kernels(text: str, fused: set[str]) -> list[str]:
+    """Each fused computation of a compiled program's HLO text (`fused`, their names),
+    with the names of its instructions and parameters and its metadata taken out: two
+    are equal where XLA emits one kernel for both."""
+    def unnamed(line):
+        line = re.sub(r", metadata=\{.*?\}(?=,|$)", "", line)
+        return re.sub(r"%?[A-Za-z_][\w\-]*(\.\d+)+|%[\w.\-]+", "v", line).strip()
+
+    bodies, computation = {}, None
+    for line in text.splitlines():
+        header = re.match(r"^(?:ENTRY )?%?([\w.\-]+) (.*)\{$", line)
+        if header:
+            computation = header.group(1)
+            bodies[computation] = [unnamed(header.group(2))] if computation in fused else None
+        elif computation is not None and bodies[computation] is not None and line.strip() not in ("", "}"):
+            bodies[computation].append(unnamed(line))
+    return ["\n".join(body) for body in bodies.values() if body is not None]
 
 
 def derivative_contexts(compiled) -> dict:

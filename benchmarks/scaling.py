@@ -71,8 +71,9 @@ of a step timed alone in a compiled loop (`_profile.gonzalez_r_pieces`: the fram
 products with its derivative, the field, the Gonzalez correction and its derivative in
 Taylor form for nearly equal points, a residual, the chord matrix, the residual's
 Jacobian that derivatives form, setup and completion), with the size of each piece's
-program (`_profile.hlo_counts`: HLO instructions, and the operations XLA runs one by
-one, about which a small step's cost on XLA:CPU goes), and each piece's growth exponent
+program (`_profile.hlo_counts`: HLO instructions, the operations XLA runs one by
+one, about which a small step's cost on XLA:CPU goes, and the distinct fused
+computations, one kernel each to compile), and each piece's growth exponent
 from n = 16 on; under "gonzalez_r_parts" and the family's name.
 
 Run: python benchmarks/scaling.py [--sizes 4,8,16,32,64] [--repeats R] [--parts family,disk,scipy,profile] [--methods NAME,...]

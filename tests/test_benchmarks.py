@@ -61,6 +61,17 @@ def test_hlo_counts_count_operations_outside_fusions():
     assert with_products["operations"] >= 3
 
 
+def test_distinct_fusions_count_a_repeated_computation_once():
+    """Two fusions of the same computation on different inputs are one kernel; with
+    different functions they are two."""
+    x = jnp.linspace(0.0, 1.0, 64).reshape(8, 8)
+    y = x[::-1]
+    repeated = _profile.hlo_counts(jax.jit(lambda a, b: jnp.sin(jnp.cos(a)) @ jnp.sin(jnp.cos(b))).lower(x, y).compile())
+    different = _profile.hlo_counts(jax.jit(lambda a, b: jnp.sin(jnp.cos(a)) @ jnp.tanh(jnp.exp(b))).lower(x, y).compile())
+    assert repeated["operations"] == different["operations"]
+    assert different["distinct_fusions"] == repeated["distinct_fusions"] + 1
+
+
 def test_derivative_contexts_attribute_every_instruction_of_a_reverse_program():
     """A reverse-mode program of the replay's shape, a checkpointed scan whose step
     forms its Jacobian's rows by a vmapped pullback: every instruction is counted once,
