@@ -7,6 +7,7 @@ travels in the solver state as an `nhjax.RESULTS` code naming its cause
 (`step_failure`), while the step reports `diffrax.RESULTS.breakdown`;
 `nhjax.integrate` reports the nhjax code."""
 
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -491,17 +492,18 @@ class AbstractMethod(diffrax.AbstractSolver):
         return jax.jacfwd(self.simplified_residual)(unknowns, data)
 
     def chord_matrix(
-        self, unknowns: Float[Array, " u"], data: Any
+        self, unknowns: Float[Array, " u"], data: Any, kept: bool = False
     ) -> tuple[PyTree[Array], Float[Array, "u u"] | tuple[Float[Array, "r u"], ...]]:
         """The chord matrix at `unknowns` (`chord_jacobian`) and its inverse, by default
-        `nhjax._solver.chord.chord_inverse`. A method whose matrix has structure may form and
+        `nhjax._solver.chord.chord_inverse` (`kept`: for a matrix kept from step to step,
+        `reuses_chord_matrix`, formed at a few steps). A method whose matrix has structure may form and
         invert it by that structure, and return in its place what it forms it from (its
         `chord_floor` reads that; a step fails as non-finite where any of it is), and
         may return the inverse as blocks of rows (`nhjax._linalg.row_blocks`), formed
         as they are, never the whole matrix
         (`nhjax.EnergyPreservingCollocation.chord_matrix`)."""
         jacobian = self.chord_jacobian(unknowns, data)
-        return jacobian, chord_inverse(jacobian)
+        return jacobian, chord_inverse(jacobian, kept)
 
     def chord_floor(self, matrix: PyTree[Array], data: Any) -> Float[Array, " u"] | None:
         """The rounding floor of the residual (`rounding_floor`) from the chord matrix as
@@ -573,7 +575,7 @@ class AbstractMethod(diffrax.AbstractSolver):
 
             def matrix_and_key():
                 guess, data = self.setup(system, t0, t1 - t0, state, args, carry)
-                return self.chord_matrix(guess, data), self.chord_key(data)
+                return self.chord_matrix(guess, data, kept=True), self.chord_key(data)
 
             # NaN in the form of a chord matrix and its inverse: nothing formed yet.
             (jacobian, inverse), key = jax.tree.map(
@@ -749,9 +751,10 @@ class AbstractMethod(diffrax.AbstractSolver):
         )
         return entered, solver_state.record(solution.steps, failure, carry, chord), failure, solution.value
 
-    def _fresh_chord(self, operands):
-        """The chord matrix at the guess, and its inverse."""
-        return self.chord_matrix(*operands)
+    def _fresh_chord(self, operands, kept: bool = False):
+        """The chord matrix at the guess, and its inverse (`kept`: to be kept for the
+        steps after, `chord_matrix`)."""
+        return self.chord_matrix(*operands, kept=kept)
 
     def _chord_root(self, root_finder, guess, data, jacobian, inverse) -> ChordSolution:
         return root_finder.solve(
@@ -807,7 +810,9 @@ class AbstractMethod(diffrax.AbstractSolver):
 
         def attempt(carry):
             fresh, _, steps_before, _, jacobian, inverse, trips = carry
-            jacobian, inverse = rarely(fresh, self._fresh_chord, (jacobian, inverse), (guess, data))
+            jacobian, inverse = rarely(
+                fresh, functools.partial(self._fresh_chord, kept=True), (jacobian, inverse), (guess, data)
+            )
             solution = self._chord_root(root_finder, guess, data, jacobian, inverse)
             failed = (solution.result != optx.RESULTS.successful) | ~jnp.isfinite(solution.residual_size)
             # A failure with a kept matrix is repeated with a fresh one; after the last

@@ -46,7 +46,7 @@ STALL_FACTOR = 8.0
 REMAINDER = 1e-4
 
 
-def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
+def chord_inverse(jacobian: Float[Array, "n n"], kept: bool = False) -> Float[Array, "n n"]:
     r"""The inverse of a chord matrix (`nhjax._linalg`): by elimination without pivoting
     wherever that is accurate, with partial pivoting elsewhere.
 
@@ -67,8 +67,20 @@ def chord_inverse(jacobian: Float[Array, "n n"]) -> Float[Array, "n n"]:
     Under `vmap` the test and the pivoted LU
     run only at the steps where some trajectory needs them (`rarely`), never for a
     non-finite matrix (a failed trajectory's). Cut from differentiation, as the chord
-    matrix is."""
+    matrix is.
+
+    `kept`: a matrix kept from step to step (`AbstractMethod.reuses_chord_matrix`),
+    formed at a few steps only, is inverted by LAPACK's pivoted LU whatever it is. Its
+    library call costs little at those steps, and it is a few instructions in the
+    program where the unrolled elimination is $n$ eliminations of a column, each a
+    kernel of its own for XLA to compile (`benchmarks/_profile.hlo_counts`'s
+    `distinct_fusions`). Euler's disk's GONZALEZ-R run (`benchmarks/gradients.py`,
+    2 000 steps, $N = 8$, the matrix formed at 126 of them): 344 distinct fused
+    computations against 378, XLA's compilation 4.04 s and 3.77 s against 4.47 s and
+    4.17 s, in turns, and 24.0 and 24.2 µs a step against 24.4 and 24.5."""
     jacobian = lax.stop_gradient(jacobian)
+    if kept:
+        return lapack_inverse(jacobian)
     if jacobian.shape[0] > UNROLL_LIMIT:
         return inverse(jacobian)
     unpivoted = inverse(jacobian, pivoting=False)

@@ -421,7 +421,7 @@ class EnergyPreservingCollocation(AbstractMethod):
             for i in range(a.shape[0])
         ])
 
-    def chord_matrix(self, u, data):
+    def chord_matrix(self, u, data, kept: bool = False):
         r"""The chord matrix, in the form of $F$ (scaled, `_scaled_field_jacobian`), from
         which `chord_jacobian` assembles it and `chord_floor` reads its rounding, and its
         inverse by the eigenvalues $\mu_k$ of $a$:
@@ -452,13 +452,13 @@ class EnergyPreservingCollocation(AbstractMethod):
         scaled = lax.stop_gradient(self._scaled_field_jacobian(u, data))
         h = lax.stop_gradient(data.h)
         if self.stages == 1:
-            return scaled, chord_inverse(self._chord_jacobian_of(scaled, h))
+            return scaled, chord_inverse(self._chord_jacobian_of(scaled, h), kept)
         eigenvalues, weights = self.tableau().inverse_blocks()
         real = jnp.asarray(eigenvalues.real, dtype=scaled.dtype)[:, None, None]
         imaginary = jnp.asarray(eigenvalues.imag, dtype=scaled.dtype)[:, None, None]
         modulus = jnp.asarray(np.abs(eigenvalues) ** 2, dtype=scaled.dtype)[:, None, None]
         identity = jnp.eye(scaled.shape[0], dtype=scaled.dtype)
-        products = jax.vmap(chord_inverse)(
+        products = jax.vmap(functools.partial(chord_inverse, kept=kept))(
             identity - 2 * h * real * scaled + h * h * modulus * matrix_product(scaled, scaled)
         )
         turned = matrix_product(scaled[None], products)
