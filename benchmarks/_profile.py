@@ -153,18 +153,30 @@ def derivative_program_sizes(system, method, y0, dt, steps: int, loss_of, args=N
 _FREE_OPERATIONS = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast"}
 
 
-def _instructions(compiled):
-    """Each instruction of a compiled program's optimised HLO, fused ones included:
+def _computations(text: str):
+    """Each computation of a compiled program's optimised HLO text: `(its name, the rest
+    of its header, its lines)`."""
+    name, header, lines = None, None, []
+    for line in text.splitlines():
+        match = re.match(r"^(?:ENTRY )?%?([\w.\-]+) (.*)\{$", line)
+        if match:
+            if name is not None:
+                yield name, header, lines
+            name, header, lines = match.group(1), match.group(2), []
+        elif name is not None and line.strip() not in ("", "}"):
+            lines.append(line)
+    if name is not None:
+        yield name, header, lines
+
+
+def _instructions(text: str):
+    """Each instruction of a compiled program's optimised HLO text, fused ones included:
     `(its computation, its opcode, its line)`."""
-    computation = None
-    for line in compiled.as_text().splitlines():
-        header = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
-        if header:
-            computation = header.group(1)
-            continue
-        instruction = re.match(r"^\s*(?:ROOT )?%?[\w.\-]+ = \S+ ([\w\-]+)\(", line)
-        if instruction is not None:
-            yield computation, instruction.group(1), line
+    for computation, _, lines in _computations(text):
+        for line in lines:
+            instruction = re.match(r"^\s*(?:ROOT )?%?[\w.\-]+ = \S+ ([\w\-]+)\(", line)
+            if instruction is not None:
+                yield computation, instruction.group(1), line
 
 
 def hlo_counts(compiled) -> dict:
@@ -179,15 +191,16 @@ def hlo_counts(compiled) -> dict:
     XLA:CPU emits one kernel for fused computations that are the same but for their
     names, so a computation repeated in a program (a function evaluated in two loops)
     adds instructions but not kernels to compile, and `distinct_fusions` follows the
-    compile time where `hlo_instructions` overstates it. Euler's disk's GONZALEZ-R run
+    compile time where `hlo_instructions` overstates it: Euler's disk's GONZALEZ-R run
     (`nhjax.examples.rolling_disk_3d`, 2 000 steps) with its chord matrix formed in
     the iteration's own loop, one copy of the residual where the program holds two
-    (a trial, not kept): 16 % fewer instructions, 5 % fewer distinct fusions (378 to
-    358), 412 to 394 kernels through LLVM, and XLA's compilation 3.44 s to 3.25 s."""
+    (a trial, not kept), had 16 % fewer instructions but 5 % fewer distinct fusions
+    (378 to 358), and compiled hardly faster (`derivative_program_sizes` times the
+    compilation of such programs)."""
     text = compiled.as_text()
     fused = set(re.findall(r"\bfusion\(.*?calls=%?([\w.\-]+)", text))
     counts = dict(hlo_instructions=0, operations=0)
-    for computation, opcode, _ in _instructions(compiled):
+    for computation, opcode, _ in _instructions(text):
         counts["hlo_instructions"] += 1
         if computation not in fused and opcode not in _FREE_OPERATIONS:
             counts["operations"] += 1
@@ -199,19 +212,16 @@ def _fused_kernels(text: str, fused: set[str]) -> list[str]:
     """Each fused computation of a compiled program's HLO text (`fused`, their names),
     with the names of its instructions and parameters and its metadata taken out: two
     are equal where XLA emits one kernel for both."""
+
     def unnamed(line):
         line = re.sub(r", metadata=\{.*?\}(?=,|$)", "", line)
         return re.sub(r"%?[A-Za-z_][\w\-]*(\.\d+)+|%[\w.\-]+", "v", line).strip()
 
-    bodies, computation = {}, None
-    for line in text.splitlines():
-        header = re.match(r"^(?:ENTRY )?%?([\w.\-]+) (.*)\{$", line)
-        if header:
-            computation = header.group(1)
-            bodies[computation] = [unnamed(header.group(2))] if computation in fused else None
-        elif computation is not None and bodies[computation] is not None and line.strip() not in ("", "}"):
-            bodies[computation].append(unnamed(line))
-    return ["\n".join(body) for body in bodies.values() if body is not None]
+    return [
+        "\n".join(map(unnamed, [header, *lines]))
+        for name, header, lines in _computations(text)
+        if name in fused
+    ]
 
 
 def derivative_contexts(compiled) -> dict:
@@ -228,7 +238,7 @@ def derivative_contexts(compiled) -> dict:
     instructions that only name or pass on buffers (most of them the parameters of
     fused computations, which carry no `op_name`)."""
     contexts = dict(vmapped_transposes=0, transposed=0, rematerialised=0, forward=0, no_work=0)
-    for _, opcode, line in _instructions(compiled):
+    for _, opcode, line in _instructions(compiled.as_text()):
         name = re.search(r'op_name="([^"]*)"', line)
         name = name.group(1) if name else ""
         if opcode in _FREE_OPERATIONS:

@@ -74,10 +74,10 @@ def chord_inverse(jacobian: Float[Array, "n n"], kept: bool = False) -> Float[Ar
     library call costs little at those steps, and it is a few instructions in the
     program where the unrolled elimination is $n$ eliminations of a column, each a
     kernel of its own for XLA to compile (`benchmarks/_profile.hlo_counts`'s
-    `distinct_fusions`). Euler's disk's GONZALEZ-R run (`benchmarks/gradients.py`,
-    2 000 steps, $N = 8$, the matrix formed at 126 of them): 344 distinct fused
-    computations against 378, XLA's compilation 4.04 s and 3.77 s against 4.47 s and
-    4.17 s, in turns, and 24.0 and 24.2 µs a step against 24.4 and 24.5."""
+    `distinct_fusions`): Euler's disk's GONZALEZ-R run of 2 000 steps ($N = 8$, the
+    matrix formed at 126 of them) holds 344 distinct fused computations against 378,
+    with the same iterations and states (`python benchmarks/gradients.py --systems disk
+    --parts` measures its compilation and steps)."""
     jacobian = lax.stop_gradient(jacobian)
     if kept:
         return lapack_inverse(jacobian)

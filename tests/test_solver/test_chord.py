@@ -18,6 +18,10 @@ from nhjax._solver import chord
 from nhjax._solver.chord import chord_inverse, ChordSolution, PresetChord, STALL_FACTOR
 
 
+sys.path.insert(0, str(pathlib.Path(__file__).parents[2] / "benchmarks"))
+from _profile import hlo_counts  # noqa: E402
+
+
 ATOL = 1e-10
 ROOT = jnp.array([0.3, -1.2, 2.0])
 ROUTES = ["own loop", "optimistix"]
@@ -293,9 +297,6 @@ def test_a_kept_chord_matrix_is_inverted_by_a_pivoted_lu_of_few_kernels():
     for k in (0, 1, 3):
         np.testing.assert_allclose(batch[k] @ matrices[k], jnp.eye(3), atol=1e-15)
     assert not bool(jnp.any(jnp.isfinite(batch[2])))
-
-    sys.path.insert(0, str(pathlib.Path(__file__).parents[2] / "benchmarks"))
-    from _profile import hlo_counts
 
     chord_matrix = jnp.eye(8) - 0.1 * jnp.cos(jnp.arange(64.0)).reshape(8, 8)
     sizes = {
