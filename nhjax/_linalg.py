@@ -321,6 +321,7 @@ def jacobian_by_differences(
     function: Callable[[Float[Array, " n"]], Float[Array, " m"]],
     x: Float[Array, " n"],
     one_at_a_time: bool = False,
+    rows: int | None = None,
 ) -> Float[Array, "m n"]:
     r"""The Jacobian of `function` at `x` by forward differences,
     $(f(x + \delta_je_j) - f(x))/\delta_j$ with
@@ -337,7 +338,10 @@ def jacobian_by_differences(
     loop of $n + 1$ trips whose arrays are those of one evaluation and the $n$ columns
     (as `jacobian_by_columns`). Either way $f$ is traced once, its value at `x` the
     first of the $n + 1$ (`x` moved by zero): the program holds one copy of $f$, not
-    two (GONZALEZ-R's residual on Euler's disk is some 1 500 instructions)."""
+    two (GONZALEZ-R's residual on Euler's disk is some 1 500 instructions). The loop's
+    carry needs $f$'s size $m$: `rows`, where the caller knows it (a chord matrix is
+    square), else found by tracing $f$ once more for its shape (`jax.eval_shape`), a
+    trace that costs as much as the loop's own."""
     step = jnp.sqrt(jnp.finfo(x.dtype).eps) * jnp.maximum(jnp.abs(x), 1)
     step = (x + step) - x
     n = x.shape[0]
@@ -354,7 +358,7 @@ def jacobian_by_differences(
         at_x = jnp.where(j == 0, value, at_x)
         return at_x, columns.at[k].set(jnp.where(j == 0, columns[k], (value - at_x) / step[k]))
 
-    size = jax.eval_shape(function, x).shape[0]
+    size = jax.eval_shape(function, x).shape[0] if rows is None else rows
     start = (jnp.zeros(size, x.dtype), jnp.zeros((n, size), x.dtype))
     return lax.fori_loop(0, n + 1, trip, start)[1].T
 

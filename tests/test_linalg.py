@@ -338,3 +338,22 @@ def test_jacobian_by_differences_is_the_jacobian_to_the_root_of_eps(dtype, toler
     assert error > 0
     graph = str(jax.make_jaxpr(lambda x: jacobian_by_differences(function, x, one_at_a_time))(x))
     assert graph.count(" sin ") == 1, graph
+
+
+def test_jacobian_by_differences_traces_a_function_of_known_size_once():
+    """A column at a time, the loop's carry needs the function's size: given as `rows`,
+    the function is traced once (for the loop) and the Jacobian is the same; without
+    it, once more for its shape."""
+    traces = []
+
+    def function(x):
+        traces.append(x)
+        return jnp.stack([jnp.sin(x[0]) * x[1], x[1] ** 2 + x[2], x[0] * x[2]])
+
+    x = jnp.asarray([0.3, 0.7, -1.2])
+    found = jacobian_by_differences(function, x, one_at_a_time=True)
+    assert len(traces) == 2
+    traces.clear()
+    given = jacobian_by_differences(function, x, one_at_a_time=True, rows=3)
+    assert len(traces) == 1
+    np.testing.assert_array_equal(given, found)

@@ -505,6 +505,19 @@ class AbstractMethod(diffrax.AbstractSolver):
         jacobian = self.chord_jacobian(unknowns, data)
         return jacobian, chord_inverse(jacobian, kept)
 
+    def unformed_chord_matrix(self, unknowns: Float[Array, " u"], data: Any) -> PyTree[Array]:
+        """NaN in the form of `chord_matrix`'s output, for a kept chord matrix's memory
+        before any matrix is formed (`reuses_chord_matrix`). Read off the unknowns
+        where `chord_matrix` is this class's, a square matrix and its inverse: tracing
+        it for its shapes alone would trace the residual as often as forming it does.
+        A method with its own `chord_matrix` has it traced for its shapes
+        (`jax.eval_shape`)."""
+        if type(self).chord_matrix is not AbstractMethod.chord_matrix:
+            shapes = jax.eval_shape(lambda: self.chord_matrix(unknowns, data, kept=True))
+            return jax.tree.map(lambda leaf: jnp.full(leaf.shape, jnp.nan, leaf.dtype), shapes)
+        square = jnp.full((unknowns.shape[0],) * 2, jnp.nan, unknowns.dtype)
+        return square, square
+
     def chord_floor(self, matrix: PyTree[Array], data: Any) -> Float[Array, " u"] | None:
         """The rounding floor of the residual (`rounding_floor`) from the chord matrix as
         `chord_matrix` returns it, at the method's `resolution`; `None` where it has
@@ -575,9 +588,8 @@ class AbstractMethod(diffrax.AbstractSolver):
 
             def matrix_and_key():
                 guess, data = self.setup(system, t0, t1 - t0, state, args, carry)
-                return self.chord_matrix(guess, data, kept=True), self.chord_key(data)
+                return self.unformed_chord_matrix(guess, data), self.chord_key(data)
 
-            # NaN in the form of a chord matrix and its inverse: nothing formed yet.
             (jacobian, inverse), key = jax.tree.map(
                 lambda leaf: jnp.full(leaf.shape, jnp.nan, leaf.dtype), jax.eval_shape(matrix_and_key)
             )

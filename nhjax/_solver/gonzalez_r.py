@@ -417,7 +417,10 @@ class GonzalezR(AbstractSymmetricSecondOrderMethod):
         $N$ points at once would be large arrays (`_columnwise`)."""
         if self.uses_exact_chord_matrix(data):
             return jacobian_by_differences(
-                lambda v: self.simplified_residual(v, data), u, one_at_a_time=self._columnwise(u, data)
+                lambda v: self.simplified_residual(v, data),
+                u,
+                one_at_a_time=self._columnwise(u, data),
+                rows=u.shape[0],
             )
         reduced, zeta, h, scale, args = data.reduced, data.zeta, data.h, data.scale, data.args
         field_jacobian = reduced.field_jacobian(zeta + 0.5 * scale * u, data.midpoint_time, args, frame_turn=True)

@@ -56,6 +56,24 @@ def test_a_kept_matrix_changes_the_iterations_not_the_run(case):
         assert float(jnp.max(jnp.abs(run.constraint))) <= 1e-14
 
 
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_memory_of_an_unformed_matrix_has_the_form_of_a_formed_one(case):
+    """The NaN a kept matrix's memory starts with, read off the unknowns where the
+    method's matrix is a square one and its inverse, has the structure, shapes and
+    dtypes of the matrix the method forms (traced for its shapes)."""
+    label, _, kept, h, _ = CASES[case]
+    example, y0 = STARTS[label]
+    system = example.canonical
+    carry = kept.initial_carry(system, y0, example.args)
+    guess, data = kept.setup(system, jnp.asarray(0.0), jnp.asarray(h), y0, example.args, carry)
+    unformed = kept.unformed_chord_matrix(guess, data)
+    formed = jax.eval_shape(lambda: kept.chord_matrix(guess, data, kept=True))
+    assert jax.tree.structure(unformed) == jax.tree.structure(formed)
+    for nan, shape in zip(jax.tree.leaves(unformed), jax.tree.leaves(formed)):
+        assert (nan.shape, nan.dtype) == (shape.shape, shape.dtype)
+        assert bool(jnp.all(jnp.isnan(nan)))
+
+
 def test_gonzalez_r_keeps_its_matrix_where_forming_it_is_dear():
     """By default GONZALEZ-R keeps its chord matrix where the metric depends on q or
     the reduced system has more than `KEPT_ABOVE_UNKNOWNS` unknowns, and not
