@@ -20,6 +20,10 @@ every checkpoint, contribute nothing to it. So a run's derivatives come from
   backward pass computes per step is one replay, its linearisation and the transpose,
   never a root find.
 
+Both scans run in chunks of a few steps (`scan_in_chunks`), so that the body of each
+step's loop reads and writes a chunk's rows of the stacked roots and states, not all of
+them, and XLA:CPU runs its operations one after another.
+
 The replay repeats the recorded step's arithmetic on the same values, so its states
 are the run's states; it steps to the same times $t_0 + k\,\Delta t$
 (`nhjax._step_times.step_time`), reports the same codes and statistics as the run's
@@ -36,6 +40,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 
 from ._ledger import observe, unledgered
+from ._linalg import SEQUENTIAL_BYTES
 from ._results import RESULTS
 from ._solver.base import AbstractMethod
 from ._step_times import save_times, step_size, step_time
@@ -58,6 +63,36 @@ def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, arg
 
     carry, root = jax.eval_shape(lambda: _first_carry_and_unknowns(system, method, y0, dt, args))
     return tree_bytes((y0, method.replayed_carry(carry), root)) * (2 if bounded else 1)
+
+
+def chunk_length(length: int, row_bytes: int) -> int:
+    """The steps of a chunk of `scan_in_chunks`: the largest divisor of `length` whose
+    rows of `row_bytes` each hold at most `SEQUENTIAL_BYTES` together (1: no chunks)."""
+    most = max(1, SEQUENTIAL_BYTES // max(row_bytes, 1))
+    return max(c for c in range(1, min(most, length) + 1) if length % c == 0)
+
+
+def scan_in_chunks(body, init, xs, row_bytes: int):
+    """`lax.scan(body, init, xs)`, as an outer scan over chunks of consecutive steps,
+    each an inner scan of `chunk_length` steps, where a step's rows of the stacked
+    inputs and outputs (and, in reverse mode, of what is kept per step) hold
+    `row_bytes`.
+
+    A scan's body reads and writes the whole stacked arrays, all the steps' rows, and
+    XLA:CPU then hands each of its operations to its thread pool
+    (`nhjax._linalg.SEQUENTIAL_BYTES`), whose scheduling costs more than a small step's
+    operations: an inner scan's body reads and writes a chunk's rows, and runs its
+    operations one after another where the rest of its arrays are small too
+    (`benchmarks/gradients.py --parts` times the recording and the reversed replay). The
+    steps and their order are those of the plain scan, and so are the results; a length
+    with no divisor in that bound (a prime number of steps) is scanned whole."""
+    length = jax.tree.leaves(xs)[0].shape[0]
+    chunk = chunk_length(length, row_bytes)
+    if chunk in (1, length):
+        return lax.scan(body, init, xs)
+    chunks = jax.tree.map(lambda x: x.reshape(length // chunk, chunk, *x.shape[1:]), xs)
+    carry, ys = lax.scan(lambda carry, rows: lax.scan(body, carry, rows), init, chunks)
+    return carry, jax.tree.map(lambda y: y.reshape(length, *y.shape[2:]), ys)
 
 
 def _first_carry_and_unknowns(system, method, y0, dt, args):
@@ -96,8 +131,10 @@ def _record(system, method, y_start, dt, t0, args, n_steps, max_steps):
         (y1, state1), (root, succeeded) = lax.cond(running, take, skip, None)
         return (y1, state1), (root, succeeded, running)
 
-    (_, final_state), (roots, succeeded, taken) = lax.scan(
-        step, (y_start, state), jnp.arange(max_steps)
+    # A step's rows: its index, its root and two flags.
+    row_bytes = tree_bytes((jnp.arange(1), root_shape)) + 2
+    (_, final_state), (roots, succeeded, taken) = scan_in_chunks(
+        step, (y_start, state), jnp.arange(max_steps), row_bytes
     )
     return roots, succeeded, taken, final_state
 
@@ -133,16 +170,23 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
         y1, carry1 = jax.tree.map(lambda new, old: jnp.where(in_run, new, old), (y1, carry1), (y, carry))
         return (y1, carry1, replayed), None
 
+    first_step = None if isinstance(n_steps, int) else (y_start, carry, roots[0], jnp.array(0))
+    start = (y_start, carry, first_step)
+    # A step's rows: its inputs, and in reverse mode the state it starts from, kept for
+    # the backward pass.
+    step_bytes = tree_bytes(start) + tree_bytes((jnp.arange(1), roots[0], succeeded[0]))
+
     def between_saves(state, inputs):
-        state, _ = lax.scan(step, state, inputs)
+        state, _ = scan_in_chunks(step, state, inputs, step_bytes)
         return state, save(None, state[0], args)
 
     blocks = jax.tree.map(
         lambda x: x.reshape(n_saves, save_every, *x.shape[1:]),
         (jnp.arange(roots.shape[0]), roots, succeeded),
     )
-    first_step = None if isinstance(n_steps, int) else (y_start, carry, roots[0], jnp.array(0))
-    _, (ys, observed) = lax.scan(between_saves, (y_start, carry, first_step), blocks)
+    # A block's rows: its steps', and its save.
+    save_bytes = tree_bytes(jax.eval_shape(lambda: save(None, y_start, args)))
+    _, (ys, observed) = scan_in_chunks(between_saves, start, blocks, save_every * step_bytes + save_bytes)
     first = jax.tree.map(lambda x: x[None], save(None, y_start, args))
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
 
