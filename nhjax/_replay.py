@@ -65,24 +65,31 @@ def replay_storage_bytes(system: AbstractSystem, method: AbstractMethod, y0, arg
     return tree_bytes((y0, method.replayed_carry(carry), root)) * (2 if bounded else 1)
 
 
+def largest_array_bytes(tree) -> int:
+    """The bytes of the largest array (or shape) in `tree`."""
+    return max((tree_bytes(leaf) for leaf in jax.tree.leaves(tree)), default=0)
+
+
 def chunk_length(length: int, row_bytes: int) -> int:
-    """The steps of a chunk of `scan_in_chunks`: the largest divisor of `length` whose
-    rows of `row_bytes` each hold at most `SEQUENTIAL_BYTES` together (1: no chunks)."""
+    """The steps of a chunk of `scan_in_chunks`: the largest divisor of `length` for
+    which that many rows of `row_bytes` hold at most `SEQUENTIAL_BYTES` (1: no
+    chunks)."""
     most = max(1, SEQUENTIAL_BYTES // max(row_bytes, 1))
     return max(c for c in range(1, min(most, length) + 1) if length % c == 0)
 
 
 def scan_in_chunks(body, init, xs, row_bytes: int):
     """`lax.scan(body, init, xs)`, as an outer scan over chunks of consecutive steps,
-    each an inner scan of `chunk_length` steps, where a step's rows of the stacked
-    inputs and outputs (and, in reverse mode, of what is kept per step) hold
-    `row_bytes`.
+    each an inner scan of `chunk_length` steps, where `row_bytes` is a step's row of
+    the largest array stacked over the steps: of the inputs and outputs, and in
+    reverse mode of what is kept per step.
 
     A scan's body reads and writes the whole stacked arrays, all the steps' rows, and
     XLA:CPU then hands each of its operations to its thread pool
-    (`nhjax._linalg.SEQUENTIAL_BYTES`), whose scheduling costs more than a small step's
-    operations: an inner scan's body reads and writes a chunk's rows, and runs its
-    operations one after another where the rest of its arrays are small too
+    (`nhjax._linalg.SEQUENTIAL_BYTES`, a bound on each array), whose scheduling costs
+    more than a small step's operations: an inner scan's body reads and writes a
+    chunk's rows, and runs its operations one after another where its other arrays
+    are small too
     (`benchmarks/gradients.py --parts` times the recording and the reversed replay). The
     steps and their order are those of the plain scan, and so are the results; a length
     with no divisor in that bound (a prime number of steps) is scanned whole."""
@@ -132,7 +139,7 @@ def _record(system, method, y_start, dt, t0, args, n_steps, max_steps):
         return (y1, state1), (root, succeeded, running)
 
     # A step's rows: its index, its root and two flags.
-    row_bytes = tree_bytes((jnp.arange(1), root_shape)) + 2
+    row_bytes = largest_array_bytes((jnp.arange(1), root_shape))
     (_, final_state), (roots, succeeded, taken) = scan_in_chunks(
         step, (y_start, state), jnp.arange(max_steps), row_bytes
     )
@@ -174,7 +181,7 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
     start = (y_start, carry, first_step)
     # A step's rows: its inputs, and in reverse mode the state it starts from, kept for
     # the backward pass.
-    step_bytes = tree_bytes(start) + tree_bytes((jnp.arange(1), roots[0], succeeded[0]))
+    step_bytes = largest_array_bytes((start, jnp.arange(1), roots[0]))
 
     def between_saves(state, inputs):
         state, _ = scan_in_chunks(step, state, inputs, step_bytes)
@@ -184,9 +191,12 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
         lambda x: x.reshape(n_saves, save_every, *x.shape[1:]),
         (jnp.arange(roots.shape[0]), roots, succeeded),
     )
-    # A block's rows: its steps', and its save.
-    save_bytes = tree_bytes(jax.eval_shape(lambda: save(None, y_start, args)))
-    _, (ys, observed) = scan_in_chunks(between_saves, start, blocks, save_every * step_bytes + save_bytes)
+    # A block's rows: its steps' inputs, the state it starts from, and its save.
+    block_bytes = max(
+        save_every * largest_array_bytes((jnp.arange(1), roots[0])),
+        largest_array_bytes((start, jax.eval_shape(lambda: save(None, y_start, args)))),
+    )
+    _, (ys, observed) = scan_in_chunks(between_saves, start, blocks, block_bytes)
     first = jax.tree.map(lambda x: x[None], save(None, y_start, args))
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
 

@@ -498,8 +498,8 @@ def test_a_scan_in_chunks_is_the_plain_scan():
 
 def test_derivatives_replayed_in_chunks_are_those_of_one_scan(monkeypatch):
     """The recording's and the replay's scans in chunks of steps (the sleigh's 60 steps
-    recorded in chunks of 10, its blocks of 6 steps between saves replayed in chunks of
-    3) give the reverse- and forward-mode derivatives of the plain scans
+    recorded in chunks of 12, its 10 blocks of 6 steps between saves replayed in chunks
+    of 2 blocks) give the reverse- and forward-mode derivatives of the plain scans
     (`SEQUENTIAL_BYTES` 0: no chunks), to roundoff."""
     import nhjax._replay as replay
 
