@@ -6,7 +6,8 @@ import diffrax
 import jax
 
 from ._ledger import run_start
-from ._replay import replay_storage_bytes, tree_bytes
+from ._chunked_scan import tree_bytes
+from ._replay import replay_storage_bytes
 from ._solver.base import AbstractMethod
 
 

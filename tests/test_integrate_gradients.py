@@ -470,38 +470,12 @@ def test_a_replayed_gonzalez_r_step_stores_its_state_frame_coordinates_signs_and
     assert replay_storage_bytes(sleigh.canonical, nh.GonzalezR(), y0, sleigh.args, jnp.asarray(0.1)) == 8 * kept
 
 
-def test_a_scan_in_chunks_is_the_plain_scan():
-    """`nhjax._replay.scan_in_chunks`: the carry and the stacked outputs of the plain
-    scan, bitwise, from an outer scan over chunks of steps, each an inner scan whose
-    rows hold at most `SEQUENTIAL_BYTES` (12 steps of 100-byte rows: chunks of 4); one
-    plain scan where no divisor of the length fits (13 steps) or all of it does."""
-    from nhjax._replay import chunk_length, scan_in_chunks
-
-    from .helpers import equations
-
-    def body(carry, x):
-        carry = jnp.sin(carry) + x[0] * carry[::-1]
-        return carry, (carry * x[1], jnp.sum(carry))
-
-    init = jnp.array([0.3, -1.2, 0.7])
-    for length, chunks in ((12, 3), (13, 1), (4, 1)):
-        xs = jnp.linspace(-1.0, 1.0, 2 * length).reshape(length, 2)
-        assert chunk_length(length, 100) == length // chunks if chunks > 1 else chunk_length(length, 100) in (1, length)
-        want = jax.lax.scan(body, init, xs)
-        got = jax.jit(lambda init, xs: scan_in_chunks(body, init, xs, row_bytes=100))(init, xs)
-        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-            assert a.shape == b.shape and bool(jnp.all(a == b))
-        jaxpr = jax.make_jaxpr(lambda init, xs: scan_in_chunks(body, init, xs, row_bytes=100))(init, xs).jaxpr
-        scans = [e for e in equations(jaxpr) if e.primitive.name == "scan"]
-        assert len(scans) == (2 if chunks > 1 else 1)
-
-
 def test_derivatives_replayed_in_chunks_are_those_of_one_scan(monkeypatch):
     """The recording's and the replay's scans in chunks of steps (the sleigh's 60 steps
     recorded in chunks of 12, its 10 blocks of 6 steps between saves replayed in chunks
     of 2 blocks) give the reverse- and forward-mode derivatives of the plain scans
     (`SEQUENTIAL_BYTES` 0: no chunks), to roundoff."""
-    import nhjax._replay as replay
+    import nhjax._chunked_scan as chunked_scan
 
     sleigh = nh.examples.chaplygin_sleigh()
     y0 = sleigh.from_adapted(jnp.array([0.0, 0.0, 0.1, 0.3, -0.6]), sleigh.args)
@@ -522,7 +496,7 @@ def test_derivatives_replayed_in_chunks_are_those_of_one_scan(monkeypatch):
     from .helpers import equations
 
     chunked_scans, chunked_reverse, chunked_forward = derivatives()
-    monkeypatch.setattr(replay, "SEQUENTIAL_BYTES", 0)
+    monkeypatch.setattr(chunked_scan, "SEQUENTIAL_BYTES", 0)
     plain_scans, reverse, forward = derivatives()
     assert chunked_scans > plain_scans
     assert _relative(chunked_reverse, reverse) <= 1e-13
