@@ -90,7 +90,7 @@ def _record(system, method, y_start, dt, t0, args, n_steps, max_steps):
         (y1, state1), (root, succeeded) = lax.cond(running, take, skip, None)
         return (y1, state1), (root, succeeded, running)
 
-    # A step's rows: its index, its root and two flags.
+    # A step's rows: its index and its root (and two one-byte flags).
     row_bytes = largest_array_bytes((jnp.arange(1), root_shape))
     (_, final_state), (roots, succeeded, taken) = scan_in_chunks(
         step, (y_start, state), jnp.arange(max_steps), row_bytes
@@ -143,13 +143,13 @@ def _replayed_saves(system, method, y_start, dt, t0, args, roots, succeeded, n_s
         lambda x: x.reshape(n_saves, save_every, *x.shape[1:]),
         (jnp.arange(roots.shape[0]), roots, succeeded),
     )
+    first = save(None, y_start, args)
     # A block's rows: its steps' inputs, the state it starts from, and its save.
     block_bytes = max(
-        save_every * largest_array_bytes((jnp.arange(1), roots[0])),
-        largest_array_bytes((start, jax.eval_shape(lambda: save(None, y_start, args)))),
+        save_every * largest_array_bytes((jnp.arange(1), roots[0])), largest_array_bytes((start, first))
     )
     _, (ys, observed) = scan_in_chunks(between_saves, start, blocks, block_bytes)
-    first = jax.tree.map(lambda x: x[None], save(None, y_start, args))
+    first = jax.tree.map(lambda x: x[None], first)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), first, (ys, observed))
 
 
