@@ -46,8 +46,17 @@ from ._rare_branch import rarely
 # steps forward and k again transposed, which made most of a GONZALEZ-R residual
 # there.
 UNROLLED_REFLECTIONS = 4
-# NumPy's "raw" QR, LAPACK's `geqrf`, never on a batch (`nhjax._linalg.lapack_unbatched`).
-_raw_qr = lapack_unbatched(lambda a_t: jnp.linalg.qr(a_t, mode="raw"))
+
+
+def _qr_work(a_t: tuple[int, ...]) -> int:
+    """jaxlib's estimate of `geqrf`'s flops on an $n \times k$ matrix, $2nk^2$ at most."""
+    n, k = a_t[-2:]
+    return 2 * n * k * min(n, k)
+
+
+# NumPy's "raw" QR, LAPACK's `geqrf`, never on a batch that jaxlib would split
+# (`nhjax._linalg.lapack_unbatched`).
+_raw_qr = lapack_unbatched(lambda a_t: jnp.linalg.qr(a_t, mode="raw"), _qr_work)
 
 
 def _reflection(r, j, given_sign):

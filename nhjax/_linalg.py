@@ -7,7 +7,7 @@ and under `vmap` becomes a loop of calls. Elimination unrolled over the (static)
 is a few fused vector operations per column, vectorises across a batch, and is
 differentiable like any other `jax.numpy` code. Above `UNROLL_LIMIT` (for symmetric
 positive definite solves `SPD_UNROLL_LIMIT`) the LAPACK routines are used, never on a
-batch (`lapack_unbatched`).
+batch that jaxlib would split over XLA's thread pool (`lapack_unbatched`).
 """
 
 import functools
@@ -29,8 +29,10 @@ UNROLL_LIMIT = 16
 # (`benchmarks/scaling.py --family trailers`).
 SPD_UNROLL_LIMIT = 7
 PRODUCT_LIMIT = 32
-# LAPACK is called on one matrix at a time from this many rows on (`lapack_unbatched`).
-LAPACK_UNBATCHED_FROM = 32
+# jaxlib's CPU LAPACK kernels split a batched call over XLA's intra-op thread pool
+# where the batch's estimated flops reach this (its `kMinWorkPerTask`, jaxlib 0.10.2);
+# `lapack_unbatched` keeps every batched call below it.
+LAPACK_SPLIT_WORK = 200_000
 # Matrix products of tiny matrices are broadcasts up to this size (`matrix_product`).
 MATRIX_PRODUCT_LIMIT = 8
 # XLA:CPU runs the operations of a computation (a loop's body, a branch) one after
@@ -47,25 +49,39 @@ MEMBERS_UNROLLED = 4
 ROW_BLOCK_LIMIT = 16
 
 
-def lapack_unbatched(routine: Callable[..., Any], fold: str | None = None) -> Callable[..., Any]:
+def lapack_unbatched(
+    routine: Callable[..., Any],
+    work: Callable[..., int],
+    fold: str | None = None,
+    members: int = 1,
+    batch_dims: tuple[int, ...] | None = None,
+) -> Callable[..., Any]:
     """`routine` (one of jax's LAPACK routines, its first operand a matrix), which under
-    `vmap` is never called on a batch of matrices of `LAPACK_UNBATCHED_FROM` rows or
-    more: where only the right-hand side `b` (the second operand) is batched, its batch
-    becomes more columns (`fold="columns"`, for $ax = b$) or rows (`fold="rows"`, for
-    $xa = b$) of one call; otherwise the batch's members are called one after another
-    (`lax.map`).
+    `vmap` never reaches LAPACK as a batch whose work jaxlib would split over XLA's
+    intra-op thread pool (`LAPACK_SPLIT_WORK`): `work(*shapes)` bounds the flops of one
+    LAPACK call of `routine` on one member, from the operands' own shapes (their batch
+    axes stripped). Where the batch's work stays below it the call stays batched (and
+    a further `vmap` batches it again, with the work of both batches counted:
+    `members`, `batch_dims`); above it, where only the right-hand side `b` (the second
+    operand) is batched, its batch becomes more columns (`fold="columns"`, for
+    $ax = b$) or rows (`fold="rows"`, for $xa = b$) of one call; otherwise the batch's
+    members are called one after another (`lax.map`).
 
-    jaxlib's CPU kernels split a batched call over XLA's intra-op thread pool, and the
-    thread that made the call waits for its parts: where every thread of the pool does
-    so at once (two batched calls in one step's program on a machine of two cores), the
-    parts never run and the program hangs. The energy-preserving collocation's stages
-    on a tractor pulling 57 or more trailers did (jax 0.10.2; its matrices have 58 to 64
-    rows; not with 53 trailers). Called on one member, a routine runs on its caller's
-    thread. Smaller matrices keep the batched call: members called one at a time made
-    a vmapped batch of 32 tractors with 5 trailers 1.45 times slower, and the
-    collocation's stages on 13 trailers 1.2 times. Evaluated only: the callers take
-    derivatives from a rule around it (`jax.lax.custom_linear_solve`,
-    `nhjax._householder`'s closed form) or cut them."""
+    Why: a kernel that splits its batch schedules the parts on the pool and the thread
+    that made the call waits for them. Where every thread of the pool does so at once
+    (two batched calls in one step's program on a machine of two cores), the parts
+    never run and the program hangs (jaxlib 0.10.2). It did for the energy-preserving
+    collocation's stages on a tractor pulling 57 or more trailers (matrices of 58 to 64
+    rows), and for GONZALEZ-R's exact chord matrix on one with 29 trailers, whose
+    $N + 1 = 35$ residuals at once hold batched Cholesky factorisations and triangular
+    solves of $30 \times 30$ matrices (`benchmarks/scaling.py --family trailers` hung
+    there in three runs of three while the bound was on matrices of 32 rows).
+    Called on one member, a routine runs on its caller's thread. A batch below the
+    bound keeps its one call: members called one at a time made a vmapped batch of 32
+    tractors with 5 trailers 1.45 times slower, and the collocation's stages on 13
+    trailers 1.2 times. Evaluated only: the callers take derivatives from a rule
+    around it (`jax.lax.custom_linear_solve`, `nhjax._householder`'s closed form) or
+    cut them."""
 
     @jax.custom_batching.custom_vmap
     def unbatched(*operands):
@@ -73,21 +89,48 @@ def lapack_unbatched(routine: Callable[..., Any], fold: str | None = None) -> Ca
 
     @unbatched.def_vmap
     def _batched(axis_size, in_batched, *operands):
-        if max(jnp.shape(operands[0])[-2:]) < LAPACK_UNBATCHED_FROM:
-            values = jax.vmap(routine, in_axes=tuple(0 if batched else None for batched in in_batched))(*operands)
+        dims = batch_dims or (0,) * len(operands)
+        shapes = [jnp.shape(x)[d + batched :] for x, d, batched in zip(operands, dims, in_batched)]
+        if axis_size * members * work(*shapes) < LAPACK_SPLIT_WORK:
+            in_axes = tuple(0 if batched else None for batched in in_batched)
+            inner = lapack_unbatched(
+                jax.vmap(routine, in_axes=in_axes),
+                work,
+                members=axis_size * members,
+                batch_dims=tuple(d + batched for d, batched in zip(dims, in_batched)),
+            )
+            values = inner(*operands)
             return values, jax.tree.map(lambda _: True, values)
-        if fold is not None and not in_batched[0]:
+        if fold is not None and members == 1 and not in_batched[0]:
             a, b = operands
             if fold == "columns":
                 return _batch_as_columns(unbatched, a, b), True
             return unbatched(a, b.reshape(-1, b.shape[-1])).reshape(b.shape), True
-        members = tuple(
+        per_member = tuple(
             x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))) for x, batched in zip(operands, in_batched)
         )
-        values = lax.map(lambda member: unbatched(*member), members)
+        values = lax.map(lambda member: unbatched(*member), per_member)
         return values, jax.tree.map(lambda _: True, values)
 
     return unbatched
+
+
+def _columns(shape: tuple[int, ...]) -> int:
+    """The columns of a right-hand side of this (unbatched) shape: 1 for a vector."""
+    return shape[-1] if len(shape) >= 2 else 1
+
+
+def _solve_work(a: tuple[int, ...], b: tuple[int, ...]) -> int:
+    """An LU (or Cholesky) factorisation of `a` and triangular solves with `b`'s
+    columns: jaxlib's estimates $n^3$ and $n^2c$ for each call."""
+    n = a[-1]
+    return max(n**3, n * n * _columns(b))
+
+
+def _inverse_work(a: tuple[int, ...]) -> int:
+    """An LU factorisation of `a` and triangular solves with its $n$ columns: $n^3$
+    each."""
+    return a[-1] ** 3
 
 
 def _batch_as_columns(
@@ -99,15 +142,22 @@ def _batch_as_columns(
     return jnp.moveaxis(columns.reshape(*b.shape[1:], b.shape[0]), -1, 0)
 
 
-_cholesky_solve = lapack_unbatched(lambda a, b: jsl.cho_solve(jsl.cho_factor(a), b), fold="columns")
-_lu_solve = lapack_unbatched(jnp.linalg.solve, fold="columns")
-_lapack_inverse = lapack_unbatched(jnp.linalg.inv)
+_cholesky_solve = lapack_unbatched(lambda a, b: jsl.cho_solve(jsl.cho_factor(a), b), _solve_work, fold="columns")
+_lu_solve = lapack_unbatched(jnp.linalg.solve, _solve_work, fold="columns")
+_lapack_inverse = lapack_unbatched(jnp.linalg.inv, _inverse_work)
+
+
+def _triangular_work(a: tuple[int, ...], b: tuple[int, ...]) -> int:
+    """jaxlib's estimate for a triangular solve with the rows and columns of `b`."""
+    rows, columns = (b[-2], b[-1]) if len(b) >= 2 else (b[-1], 1)
+    return rows * columns * a[-1]
 
 
 @functools.cache
 def _triangular_routine(left_side: bool, lower: bool, transpose_a: bool) -> Callable[..., Any]:
     return lapack_unbatched(
         functools.partial(lax.linalg.triangular_solve, left_side=left_side, lower=lower, transpose_a=transpose_a),
+        _triangular_work,
         fold="columns" if left_side else "rows",
     )
 

@@ -16,7 +16,7 @@ from nhjax._linalg import (
     is_diagonally_dominant,
     jacobian_by_differences,
     lapack_inverse,
-    LAPACK_UNBATCHED_FROM,
+    LAPACK_SPLIT_WORK,
     product,
     PRODUCT_LIMIT,
     row_blocks,
@@ -91,14 +91,14 @@ def test_inverse_needs_pivoting_and_reports_singular_matrices():
 
 def test_lapack_inverse_pivots_batches_and_reports_singular_matrices():
     """The rare branches' inverse: exact where pivoting is needed, non-finite for a
-    singular matrix, and under `vmap` each member's own inverse, below and from
-    `LAPACK_UNBATCHED_FROM` (one call per member there), a singular member spoiling no
-    other."""
+    singular matrix, and under `vmap` each member's own inverse, in one batched call
+    and member by member (a batch of 40-row matrices whose work jaxlib would split), a
+    singular member spoiling no other."""
     swap = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
     np.testing.assert_array_equal(jax.jit(lapack_inverse)(swap), jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.5]]))
     assert not bool(jnp.all(jnp.isfinite(lapack_inverse(jnp.array([[1.0, 2.0], [2.0, 4.0]])))))
-    for n in (3, LAPACK_UNBATCHED_FROM):
-        batch = jax.random.normal(jax.random.key(n), (3, n, n)).at[1].set(jnp.ones((n, n)))
+    for n, members in ((3, 3), (40, 4)):
+        batch = jax.random.normal(jax.random.key(n), (members, n, n)).at[1].set(jnp.ones((n, n)))
         inverses = jax.jit(jax.vmap(lapack_inverse))(batch)
         assert not bool(jnp.all(jnp.isfinite(inverses[1])))
         for i in (0, 2):
@@ -192,29 +192,35 @@ def test_spd_solve_is_differentiated_by_one_more_solve():
     assert 6 * solve_size > _traced_size(jax.jacfwd(jax.grad(lambda s: p @ solve_spd(a(s), p))), 0.3)
 
 
-def _batched_lapack_calls(function, *operands) -> list[str]:
-    """The LAPACK calls of `function`'s compiled program whose operand has a batch
-    axis (a 3-D shape)."""
+def _lapack_batches(function, *operands) -> list[int]:
+    """The number of matrices in each LAPACK call of `function`'s compiled program that
+    holds more than one (the product of the batch axes of its first result)."""
     text = jax.jit(function).lower(*operands).compile().as_text()
-    return [
-        line.split("=")[1].split("custom-call")[0]
-        for line in text.splitlines()
-        if "custom-call(" in line and "lapack" in line and re.search(r"f64\[\d+,\d+,\d+\]", line.split("custom-call")[0])
-    ]
+    batches = []
+    for line in text.splitlines():
+        if "custom-call(" in line and 'custom_call_target="lapack' in line:
+            dims = re.search(r"f(?:32|64)\[([\d,]*)\]", line.split("custom-call")[0]).group(1).split(",")
+            batch = int(np.prod([int(d) for d in dims[:-2]])) if len(dims) > 2 else 1
+            if batch > 1:
+                batches.append(batch)
+    return batches
 
 
-def test_lapack_is_never_called_on_a_batch_of_large_matrices():
-    """Under `vmap`, matrices of `LAPACK_UNBATCHED_FROM` rows or more reach LAPACK one at
-    a time (`lapack_unbatched`: jaxlib's batched kernels can hang XLA's thread pool), a
-    batch of right-hand sides for one matrix as the columns or rows of one call, with
-    the values of the calls made one by one, and derivatives those of jax's own
-    routines; smaller matrices keep the batched call."""
-    n = LAPACK_UNBATCHED_FROM + 8
+def test_lapack_batches_stay_below_the_work_jaxlib_splits():
+    """Under `vmap`, LAPACK is called on a batch only where the batch's work is below
+    `LAPACK_SPLIT_WORK` (`lapack_unbatched`: jaxlib's kernels split larger batches over
+    XLA's thread pool, which can hang it): 40-row matrices ($40^3 = 64000$ flops a
+    factorisation or solve) in batches of 3 keep one call, in batches of 4 are called
+    one at a time, a batch of right-hand sides for one matrix becomes the columns or
+    rows of one call; nested `vmap`s count both batches. The values are those of the
+    calls made one by one, and derivatives those of jax's own routines."""
+    n = 40
+    assert 3 * n**3 < LAPACK_SPLIT_WORK <= 4 * n**3
     keys = jax.random.split(jax.random.key(3), 3)
-    a = jax.random.normal(keys[0], (3, n, n)) + 2 * n**0.5 * jnp.eye(n)
+    a = jax.random.normal(keys[0], (4, n, n)) + 2 * n**0.5 * jnp.eye(n)
     spd = a @ jnp.swapaxes(a, 1, 2) + jnp.eye(n)
-    b = jax.random.normal(keys[1], (3, n))
-    columns = jax.random.normal(keys[2], (3, n, 2))
+    b = jax.random.normal(keys[1], (4, n))
+    columns = jax.random.normal(keys[2], (4, n, n))
     triangular = {
         "left, upper": dict(left_side=True, lower=False),
         "left, lower, transposed": dict(left_side=True, lower=True, transpose_a=True),
@@ -233,16 +239,26 @@ def test_lapack_is_never_called_on_a_batch_of_large_matrices():
         },
     }
     for name, (function, matrices, rhs) in cases.items():
-        one_by_one = jnp.stack([function(m, r) for m, r in zip(matrices, rhs)])
-        for in_axes in ((0, 0), (None, 0)):
-            matrix = matrices if in_axes[0] == 0 else matrices[0]
-            expected = one_by_one if in_axes[0] == 0 else jnp.stack([function(matrices[0], r) for r in rhs])
-            batched = jax.vmap(function, in_axes=in_axes)
-            np.testing.assert_allclose(batched(matrix, rhs), expected, rtol=1e-12, atol=1e-12, err_msg=name)
-            assert _batched_lapack_calls(batched, matrix, rhs) == [], name
+        for members, batched_calls in ((3, True), (4, False)):
+            ms, rs = matrices[:members], rhs[:members]
+            one_by_one = jnp.stack([function(m, r) for m, r in zip(ms, rs)])
+            batched = jax.vmap(function)
+            np.testing.assert_allclose(batched(ms, rs), one_by_one, rtol=1e-12, atol=1e-12, err_msg=name)
+            assert bool(_lapack_batches(batched, ms, rs)) == batched_calls, (name, members)
+        one_matrix = jax.vmap(function, in_axes=(None, 0))
+        expected = jnp.stack([function(matrices[0], r) for r in rhs])
+        np.testing.assert_allclose(one_matrix(matrices[0], rhs), expected, rtol=1e-12, atol=1e-12, err_msg=name)
+        assert _lapack_batches(one_matrix, matrices[0], rhs) == [], name
     batched_inverse = jax.vmap(inverse)
     np.testing.assert_allclose(batched_inverse(a), jnp.linalg.inv(a), rtol=1e-12, atol=1e-12)
-    assert _batched_lapack_calls(batched_inverse, a) == []
+    assert _lapack_batches(batched_inverse, a) == []
+    # Two batches of 2, 4 members in all: called in batches of at most 2.
+    nested = jax.vmap(jax.vmap(solve))
+    pairs, pair_rhs = a.reshape(2, 2, n, n), b.reshape(2, 2, n)
+    np.testing.assert_allclose(nested(pairs, pair_rhs), jnp.linalg.solve(pairs, pair_rhs[..., None])[..., 0], rtol=1e-12)
+    assert max(_lapack_batches(nested, pairs, pair_rhs)) == 2
+    # One batch of 2 in a batch of 1: one call on both.
+    assert max(_lapack_batches(nested, a[:2].reshape(1, 2, n, n), b[:2].reshape(1, 2, n))) == 2
     # Derivatives through the linear-solve rules, against jax's own routines.
     loss = lambda solver: lambda m, r: jnp.sum(jnp.sin(solver(m, r)))
     for ours, theirs in (
@@ -257,9 +273,6 @@ def test_lapack_is_never_called_on_a_batch_of_large_matrices():
             np.testing.assert_allclose(
                 jax.grad(loss(ours), argument)(a[0], rhs), jax.grad(loss(theirs), argument)(a[0], rhs), rtol=1e-10
             )
-    small = a[:, :8, :8]
-    assert _batched_lapack_calls(jax.vmap(lambda m: jnp.linalg.inv(m)), small)  # the check sees batched calls
-    assert _batched_lapack_calls(jax.vmap(lambda m, r: triangular_solve(m, r, left_side=True, lower=False)), small, columns[:, :8])
 
 
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
