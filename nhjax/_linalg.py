@@ -64,8 +64,10 @@ def lapack_unbatched(
     a further `vmap` batches it again, with the work of both batches counted:
     `members`, `batch_dims`); above it, where only the right-hand side `b` (the second
     operand) is batched, its batch becomes more columns (`fold="columns"`, for
-    $ax = b$) or rows (`fold="rows"`, for $xa = b$) of one call; otherwise the batch's
-    members are called one after another (`lax.map`).
+    $ax = b$) or rows (`fold="rows"`, for $xa = b$) of one call; otherwise the batch is
+    called in parts, each as many members as stay below the bound (`lax.map` over
+    parts, the members left over in one more call), or one member at a time where one
+    alone reaches it.
 
     Why: a kernel that splits its batch schedules the parts on the pool and the thread
     that made the call waits for them. Where every thread of the pool does so at once
@@ -79,9 +81,9 @@ def lapack_unbatched(
     Called on one member, a routine runs on its caller's thread. A batch below the
     bound keeps its one call: members called one at a time made a vmapped batch of 32
     tractors with 5 trailers 1.45 times slower, and the collocation's stages on 13
-    trailers 1.2 times. Evaluated only: the callers take derivatives from a rule
-    around it (`jax.lax.custom_linear_solve`, `nhjax._householder`'s closed form) or
-    cut them."""
+    trailers 1.2 times; above the bound, parts keep most of that saving. Evaluated
+    only: the callers take derivatives from a rule around it
+    (`jax.lax.custom_linear_solve`, `nhjax._householder`'s closed form) or cut them."""
 
     @jax.custom_batching.custom_vmap
     def unbatched(*operands):
@@ -109,10 +111,17 @@ def lapack_unbatched(
         per_member = tuple(
             x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))) for x, batched in zip(operands, in_batched)
         )
-        values = lax.map(lambda member: unbatched(*member), per_member)
+        per_call = _members_per_call(members * work(*shapes))
+        values = lax.map(lambda member: unbatched(*member), per_member, batch_size=per_call if per_call > 1 else None)
         return values, jax.tree.map(lambda _: True, values)
 
     return unbatched
+
+
+def _members_per_call(work: int) -> int:
+    """The most members of a batch whose LAPACK calls, each of this work, one batched
+    call can hold and stay below `LAPACK_SPLIT_WORK`."""
+    return max(1, (LAPACK_SPLIT_WORK - 1) // work)
 
 
 def _columns(shape: tuple[int, ...]) -> int:
