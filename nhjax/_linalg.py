@@ -111,17 +111,12 @@ def lapack_unbatched(
         per_member = tuple(
             x if batched else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))) for x, batched in zip(operands, in_batched)
         )
-        per_call = _members_per_call(members * work(*shapes))
+        # As many members a call as keep its work below the bound (none where one does not).
+        per_call = (LAPACK_SPLIT_WORK - 1) // (members * work(*shapes))
         values = lax.map(lambda member: unbatched(*member), per_member, batch_size=per_call if per_call > 1 else None)
         return values, jax.tree.map(lambda _: True, values)
 
     return unbatched
-
-
-def _members_per_call(work: int) -> int:
-    """The most members of a batch whose LAPACK calls, each of this work, one batched
-    call can hold and stay below `LAPACK_SPLIT_WORK`."""
-    return max(1, (LAPACK_SPLIT_WORK - 1) // work)
 
 
 def _columns(shape: tuple[int, ...]) -> int:
